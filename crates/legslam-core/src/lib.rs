@@ -1,0 +1,16 @@
+//! legslam engine: everything numeric and hot, with no Python in it.
+//!
+//! - [`raster`]: the differentiable Gaussian rasterizer (forward and hand-written backward).
+//! - [`camera`]: pinhole intrinsics and rigid poses shared by the rasterizer and the tracker.
+//! - [`track`]: dense RGB-D pose tracking.
+
+pub mod camera;
+pub mod raster;
+pub mod track;
+
+/// The engine's scalar type: `f32` in every build users run, `f64` under the `f64` feature so
+/// that finite-difference tests can check gradients with tiny steps.
+#[cfg(not(feature = "f64"))]
+pub type Real = f32;
+#[cfg(feature = "f64")]
+pub type Real = f64;

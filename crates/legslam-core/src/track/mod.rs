@@ -1,0 +1,1 @@
+//! Dense RGB-D pose tracking (to be written).

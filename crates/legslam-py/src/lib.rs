@@ -1,0 +1,14 @@
+//! PyO3 bindings only: numpy in, numpy out, engine errors -> Python exceptions.
+//! Each submodule registers the functions of one engine concept.
+
+use pyo3::prelude::*;
+
+mod raster;
+mod track;
+
+#[pymodule]
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    raster::register(m)?;
+    track::register(m)?;
+    Ok(())
+}

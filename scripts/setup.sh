@@ -1,0 +1,15 @@
+#!/usr/bin/env bash
+# Sets legslam up on a fresh machine: a virtual environment in .venv with the runtime and test
+# dependencies, and the engine built in release mode into it. Safe to run again.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+if [ ! -x .venv/bin/python ]; then
+  "$PY" -m venv .venv
+fi
+.venv/bin/python -m pip install --quiet --upgrade pip
+.venv/bin/python -m pip install --quiet maturin numpy onnxruntime opencv-python-headless \
+  pytest scikit-image onnx
+# Release build of the Rust engine, installed (editable) into .venv.
+VIRTUAL_ENV="$PWD/.venv" .venv/bin/maturin develop --release --quiet
+echo "legslam is set up in $PWD/.venv (activate with: source .venv/bin/activate)"
