@@ -1,0 +1,247 @@
+//! Forward pass: project every Gaussian, bin into tiles, composite front to back.
+
+use rayon::prelude::*;
+
+use super::math::{sigmoid, V2, V3};
+use super::project::{color_raw, extent, geometry, Pinhole};
+use super::tiles::{bin, rect, Bins, Grid, Rect};
+use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
+use crate::Real;
+
+/// A projected Gaussian, as the compositing loops read it.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Splat {
+    pub xy: V2,
+    /// Inverse 2D covariance entries (a, b, c): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy.
+    pub conic: V3,
+    pub opacity: Real,
+    pub depth: Real,
+    pub color: V3,
+}
+
+/// One Gaussian's alpha at one pixel, with what the backward pass needs of it.
+pub(crate) struct AlphaAt {
+    pub alpha: Real,
+    /// exp(-sigma): d(alpha)/d(opacity) when not capped.
+    pub falloff: Real,
+    pub dx: Real,
+    pub dy: Real,
+    /// Whether alpha was capped at `alpha_max` (its gradient is then zero).
+    pub capped: bool,
+}
+
+/// The one place that decides whether and how much a Gaussian covers a pixel; forward and
+/// backward both call it so that their decisions agree exactly.
+#[inline(always)]
+pub(crate) fn alpha_at(s: &Splat, px: Real, py: Real, cfg: &RasterConfig) -> Option<AlphaAt> {
+    let dx = px - s.xy.x;
+    let dy = py - s.xy.y;
+    let sigma = 0.5 * (s.conic.x * dx * dx + s.conic.z * dy * dy) + s.conic.y * dx * dy;
+    if sigma < 0.0 {
+        return None;
+    }
+    let falloff = (-sigma).exp();
+    let raw = s.opacity * falloff;
+    if raw < cfg.alpha_min {
+        return None;
+    }
+    Some(AlphaAt {
+        alpha: raw.min(cfg.alpha_max),
+        falloff,
+        dx,
+        dy,
+        capped: raw > cfg.alpha_max,
+    })
+}
+
+/// What the backward pass needs from the forward pass.
+#[derive(Clone, Debug)]
+pub(crate) struct State {
+    pub grid: Grid,
+    pub splats: Vec<Splat>,
+    pub rects: Vec<Rect>,
+    pub bins: Bins,
+    /// Per pixel: how many entries of its tile's list were walked (the last contributor + 1).
+    pub pixel_end: Vec<u32>,
+    /// Per pixel: final transmittance.
+    pub pixel_t: Vec<Real>,
+    pub options: RenderOptions,
+}
+
+/// Splits `v` into `n` consecutive slices of `len` elements (the last may be shorter), or `n`
+/// empty slices when `v` is empty (an output that was not requested).
+pub(crate) fn split_chunks<T>(v: &mut [T], len: usize, n: usize) -> Vec<&mut [T]> {
+    if v.is_empty() {
+        return (0..n).map(|_| <&mut [T]>::default()).collect();
+    }
+    v.chunks_mut(len.max(1)).collect()
+}
+
+/// Renders the requested images. Does not validate the Gaussians (see
+/// [`Gaussians::validate`]): the engine's own loops pass arrays they maintain.
+pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rendered, String> {
+    opts.config.validate()?;
+    cam.intrinsics.validate()?;
+    let max_degree = (g.sh_coeffs as f64).sqrt() as usize - 1;
+    if opts.color && opts.sh_degree > max_degree {
+        return Err(format!(
+            "sh_degree {} needs {} coefficients per channel, the Gaussians have {}",
+            opts.sh_degree,
+            super::sh::num_coeffs(opts.sh_degree),
+            g.sh_coeffs
+        ));
+    }
+    let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
+    let k = if opts.features { g.num_features } else { 0 };
+    let cfg = &opts.config;
+    let pin = Pinhole::new(cam, cfg);
+    let grid = Grid::new(w, h);
+    let cam_pos = cam.position();
+
+    // Projection, one Gaussian at a time.
+    let projected: Vec<(Splat, Rect, Real)> = (0..g.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let culled = (Splat::default(), [0; 4], 0.0);
+            let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
+                return culled;
+            };
+            let opacity = sigmoid(g.opacity_logits[i]);
+            let Some(ext) = extent(&geo, opacity, cfg) else {
+                return culled;
+            };
+            let r = rect(&grid, geo.xy.x, geo.xy.y, ext.x, ext.y);
+            if r[0] >= r[2] || r[1] >= r[3] {
+                return culled;
+            }
+            let color = if opts.color {
+                color_raw(g, i, opts.sh_degree, cam_pos).max(V3::ZERO)
+            } else {
+                V3::ZERO
+            };
+            let splat = Splat {
+                xy: geo.xy,
+                conic: geo.conic,
+                opacity,
+                depth: geo.p_cam.z,
+                color,
+            };
+            (splat, r, ext.x.max(ext.y))
+        })
+        .collect();
+    let mut splats = Vec::with_capacity(g.len());
+    let mut rects = Vec::with_capacity(g.len());
+    let mut radii = Vec::with_capacity(g.len());
+    for (s, r, rad) in projected {
+        splats.push(s);
+        rects.push(r);
+        radii.push(rad);
+    }
+    let depth_keys: Vec<Real> = splats.iter().map(|s| s.depth).collect();
+    let bins = bin(&grid, &rects, &depth_keys);
+
+    // Compositing, one row of tiles at a time (its pixels are contiguous in every image).
+    let npix = w * h;
+    let mut color = vec![0.0; if opts.color { npix * 3 } else { 0 }];
+    let mut depth = vec![0.0; if opts.depth { npix } else { 0 }];
+    let mut alpha = vec![0.0; if opts.alpha { npix } else { 0 }];
+    let mut features = vec![0.0; npix * k];
+    let mut pixel_end = vec![0u32; npix];
+    let mut pixel_t = vec![1.0; npix];
+    let rows = TILE * w;
+    let n = grid.tiles_y;
+    let outs: Vec<_> = split_chunks(&mut color, rows * 3, n)
+        .into_iter()
+        .zip(split_chunks(&mut depth, rows, n))
+        .zip(split_chunks(&mut alpha, rows, n))
+        .zip(split_chunks(&mut features, rows * k, n))
+        .zip(split_chunks(&mut pixel_end, rows, n))
+        .zip(split_chunks(&mut pixel_t, rows, n))
+        .enumerate()
+        .collect();
+    outs.into_par_iter()
+        .for_each(|(ty, (((((col, dep), alp), fea), end), tr))| {
+            let mut local: Vec<Splat> = Vec::new();
+            let mut local_feat: Vec<Real> = Vec::new();
+            for tx in 0..grid.tiles_x {
+                let t = ty * grid.tiles_x + tx;
+                let list =
+                    &bins.pair_gauss[bins.tile_start[t] as usize..bins.tile_start[t + 1] as usize];
+                if list.is_empty() {
+                    continue;
+                }
+                local.clear();
+                local.extend(list.iter().map(|&i| splats[i as usize]));
+                local_feat.clear();
+                for &i in list {
+                    local_feat.extend_from_slice(&g.features[i as usize * k..][..k]);
+                }
+                let x_end = ((tx + 1) * TILE).min(w);
+                let y_end = ((ty + 1) * TILE).min(h);
+                for y in ty * TILE..y_end {
+                    for x in tx * TILE..x_end {
+                        let p = (y - ty * TILE) * w + x;
+                        let (px, py) = (x as Real, y as Real);
+                        let mut trans: Real = 1.0;
+                        let mut c = V3::ZERO;
+                        let mut d = 0.0;
+                        let mut last = 0;
+                        let f_out = if k > 0 {
+                            &mut fea[p * k..][..k]
+                        } else {
+                            &mut [][..]
+                        };
+                        for (j, s) in local.iter().enumerate() {
+                            let Some(a) = alpha_at(s, px, py, cfg) else {
+                                continue;
+                            };
+                            let next = trans * (1.0 - a.alpha);
+                            if next < cfg.transmittance_min {
+                                break;
+                            }
+                            let wgt = a.alpha * trans;
+                            c += s.color * wgt;
+                            d += s.depth * wgt;
+                            for (o, f) in f_out.iter_mut().zip(&local_feat[j * k..][..k]) {
+                                *o += wgt * f;
+                            }
+                            trans = next;
+                            last = j + 1;
+                        }
+                        if !col.is_empty() {
+                            col[3 * p..3 * p + 3].copy_from_slice(&c.to_array());
+                        }
+                        if !dep.is_empty() {
+                            dep[p] = d;
+                        }
+                        if !alp.is_empty() {
+                            alp[p] = 1.0 - trans;
+                        }
+                        end[p] = last as u32;
+                        tr[p] = trans;
+                    }
+                }
+            }
+        });
+
+    Ok(Rendered {
+        width: w,
+        height: h,
+        num_features: k,
+        color,
+        depth,
+        alpha,
+        features,
+        radii,
+        state: State {
+            grid,
+            splats,
+            rects,
+            bins,
+            pixel_end,
+            pixel_t,
+            options: *opts,
+        },
+    })
+}

@@ -1,0 +1,339 @@
+//! Per-Gaussian projection (EWA splatting) and its backward pass.
+
+// `!(x > 0.0)` is deliberate: it culls NaN as well.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
+
+use super::math::{at, quat_to_mat, quat_to_mat_vjp, sigmoid, M3, V2, V3};
+use super::{sh, Camera, Gaussians, RasterConfig};
+use crate::Real;
+
+/// Pinhole parameters in the engine's scalar type, with the Jacobian's clamping limits.
+#[derive(Clone, Copy)]
+pub(crate) struct Pinhole {
+    pub fx: Real,
+    pub fy: Real,
+    pub cx: Real,
+    pub cy: Real,
+    lim_x: (Real, Real),
+    lim_y: (Real, Real),
+}
+
+impl Pinhole {
+    pub fn new(cam: &Camera, cfg: &RasterConfig) -> Self {
+        let k = &cam.intrinsics;
+        let (fx, fy, cx, cy) = (k.fx as Real, k.fy as Real, k.cx as Real, k.cy as Real);
+        let (w, h) = (k.width as Real, k.height as Real);
+        let mx = cfg.fov_margin * 0.5 * w / fx;
+        let my = cfg.fov_margin * 0.5 * h / fy;
+        Pinhole {
+            fx,
+            fy,
+            cx,
+            cy,
+            lim_x: (-(cx + 0.5) / fx - mx, (w - 0.5 - cx) / fx + mx),
+            lim_y: (-(cy + 0.5) / fy - my, (h - 0.5 - cy) / fy + my),
+        }
+    }
+}
+
+/// Intermediate values of one Gaussian's projection, shared by forward and backward.
+pub(crate) struct Geometry {
+    pub p_cam: V3,
+    /// Unnormalised quaternion norm and normalised quaternion (w, x, y, z).
+    q_norm: Real,
+    q: [Real; 4],
+    rot: M3,
+    scale: V3,
+    cov_cam: M3,
+    /// Rows of the 2x3 projection Jacobian, and whether x/z, y/z were clamped.
+    j0: V3,
+    j1: V3,
+    clamped: (bool, bool),
+    /// 2D covariance (with dilation) entries (xx, xy, yy) and its inverse, the conic (a, b, c).
+    cov2d: V3,
+    pub conic: V3,
+    pub xy: V2,
+}
+
+/// Projects Gaussian `i`; `None` when it is behind the near plane, beyond the far plane or
+/// degenerate. Image-extent culling is the caller's.
+#[inline]
+pub(crate) fn geometry(
+    g: &Gaussians,
+    i: usize,
+    cam: &Camera,
+    pin: &Pinhole,
+    cfg: &RasterConfig,
+) -> Option<Geometry> {
+    let m = &g.means[3 * i..3 * i + 3];
+    let p_cam = cam.rotation * V3::new(m[0], m[1], m[2]) + cam.translation;
+    let z = p_cam.z;
+    if !(z > cfg.near && z < cfg.far) {
+        return None;
+    }
+    let qr = &g.quats[4 * i..4 * i + 4];
+    let q_norm = (qr[0] * qr[0] + qr[1] * qr[1] + qr[2] * qr[2] + qr[3] * qr[3]).sqrt();
+    if !(q_norm > 0.0) {
+        return None;
+    }
+    let q = [
+        qr[0] / q_norm,
+        qr[1] / q_norm,
+        qr[2] / q_norm,
+        qr[3] / q_norm,
+    ];
+    let rot = quat_to_mat(q[0], q[1], q[2], q[3]);
+    let ls = &g.log_scales[3 * i..3 * i + 3];
+    let scale = V3::new(ls[0].exp(), ls[1].exp(), ls[2].exp());
+    let mm = cam.rotation * rot * M3::from_diagonal(scale);
+    let cov_cam = mm * mm.transpose();
+
+    let (tx, ty) = (p_cam.x / z, p_cam.y / z);
+    let sx = tx.clamp(pin.lim_x.0, pin.lim_x.1);
+    let sy = ty.clamp(pin.lim_y.0, pin.lim_y.1);
+    let j0 = V3::new(pin.fx / z, 0.0, -pin.fx * sx / z);
+    let j1 = V3::new(0.0, pin.fy / z, -pin.fy * sy / z);
+    let (cj0, cj1) = (cov_cam * j0, cov_cam * j1);
+    let cov2d = V3::new(
+        j0.dot(cj0) + cfg.dilation,
+        j0.dot(cj1),
+        j1.dot(cj1) + cfg.dilation,
+    );
+    let det = cov2d.x * cov2d.z - cov2d.y * cov2d.y;
+    if !(det > 1e-12) {
+        return None;
+    }
+    let conic = V3::new(cov2d.z / det, -cov2d.y / det, cov2d.x / det);
+    let xy = V2::new(pin.fx * tx + pin.cx, pin.fy * ty + pin.cy);
+    Some(Geometry {
+        p_cam,
+        q_norm,
+        q,
+        rot,
+        scale,
+        cov_cam,
+        j0,
+        j1,
+        clamped: (sx != tx, sy != ty),
+        cov2d,
+        conic,
+        xy,
+    })
+}
+
+/// Half extents (x, y) in pixels of the region where the Gaussian's alpha can reach
+/// `alpha_min`: the bounding box of the ellipse `0.5 d^T conic d <= ln(opacity / alpha_min)`.
+#[inline]
+pub(crate) fn extent(geo: &Geometry, opacity: Real, cfg: &RasterConfig) -> Option<V2> {
+    let level = (opacity / cfg.alpha_min).ln();
+    if !(level > 0.0) {
+        return None;
+    }
+    Some(V2::new(
+        (2.0 * level * geo.cov2d.x).sqrt(),
+        (2.0 * level * geo.cov2d.z).sqrt(),
+    ))
+}
+
+/// View direction from the camera centre to the Gaussian, unnormalised.
+#[inline]
+fn view_dir(g: &Gaussians, i: usize, cam_pos: V3) -> V3 {
+    let m = &g.means[3 * i..3 * i + 3];
+    V3::new(m[0], m[1], m[2]) - cam_pos
+}
+
+/// SH colour (+0.5, before clamping at 0).
+#[inline]
+pub(crate) fn color_raw(g: &Gaussians, i: usize, degree: usize, cam_pos: V3) -> V3 {
+    let n = sh::num_coeffs(degree);
+    let coeffs = &g.sh[i * g.sh_coeffs * 3..];
+    let mut b = [0.0; 16];
+    if degree > 0 {
+        sh::basis(degree, view_dir(g, i, cam_pos).normalize_or_zero(), &mut b);
+    } else {
+        b[0] = sh::basis_c0();
+    }
+    let mut c = V3::splat(0.5);
+    for k in 0..n {
+        c += b[k] * V3::new(coeffs[3 * k], coeffs[3 * k + 1], coeffs[3 * k + 2]);
+    }
+    c
+}
+
+/// Gradients of one Gaussian's screen-space quantities, gathered from all pixels.
+#[derive(Clone, Copy, Default)]
+pub(crate) struct ScreenGrads {
+    pub xy: V2,
+    /// With respect to the conic entries (a, b, c) as scalars.
+    pub conic: V3,
+    pub opacity: Real,
+    pub color: V3,
+    pub depth: Real,
+}
+
+/// Where one Gaussian's parameter gradients go.
+pub(crate) struct ParamGrads<'a> {
+    pub mean: &'a mut [Real],
+    pub log_scale: &'a mut [Real],
+    pub quat: &'a mut [Real],
+    pub opacity_logit: &'a mut Real,
+    pub sh: &'a mut [Real],
+}
+
+/// Backward of the projection of Gaussian `i`: writes its parameter gradients and returns its
+/// contribution to the pose gradient (rho, phi).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn backward_one(
+    g: &Gaussians,
+    i: usize,
+    cam: &Camera,
+    pin: &Pinhole,
+    geo: &Geometry,
+    sh_degree: usize,
+    want_color: bool,
+    sg: &ScreenGrads,
+    out: ParamGrads,
+) -> [Real; 6] {
+    let z = geo.p_cam.z;
+    let (x, y) = (geo.p_cam.x, geo.p_cam.y);
+    let w_rot = cam.rotation;
+
+    // Opacity.
+    let o = sigmoid(g.opacity_logits[i]);
+    *out.opacity_logit = sg.opacity * o * (1.0 - o);
+
+    // Camera-space position: depth and the projected centre.
+    let mut g_p = V3::new(0.0, 0.0, sg.depth);
+    g_p.x += sg.xy.x * pin.fx / z;
+    g_p.y += sg.xy.y * pin.fy / z;
+    g_p.z -= (sg.xy.x * pin.fx * x + sg.xy.y * pin.fy * y) / (z * z);
+
+    // Conic -> 2D covariance: G_cov = -Q G_Q Q, with G_Q the symmetric-matrix gradient.
+    let q2 = [[geo.conic.x, geo.conic.y], [geo.conic.y, geo.conic.z]];
+    let gq = [
+        [sg.conic.x, 0.5 * sg.conic.y],
+        [0.5 * sg.conic.y, sg.conic.z],
+    ];
+    let mut g_cov2 = [[0.0; 2]; 2];
+    for (a, row) in g_cov2.iter_mut().enumerate() {
+        for (b, v) in row.iter_mut().enumerate() {
+            let mut s = 0.0;
+            for c in 0..2 {
+                for d in 0..2 {
+                    s += q2[a][c] * gq[c][d] * q2[d][b];
+                }
+            }
+            *v = -s;
+        }
+    }
+
+    // 2D covariance = J cov_cam J^T: to cov_cam and to J.
+    let (j0, j1) = (geo.j0, geo.j1);
+    let outer = |a: V3, b: V3| M3::from_cols(a * b.x, a * b.y, a * b.z);
+    let g_cov_cam = g_cov2[0][0] * outer(j0, j0)
+        + g_cov2[0][1] * (outer(j0, j1) + outer(j1, j0))
+        + g_cov2[1][1] * outer(j1, j1);
+    let (cj0, cj1) = (geo.cov_cam * j0, geo.cov_cam * j1);
+    let g_j0 = 2.0 * (g_cov2[0][0] * cj0 + g_cov2[0][1] * cj1);
+    let g_j1 = 2.0 * (g_cov2[1][0] * cj0 + g_cov2[1][1] * cj1);
+
+    // J -> camera-space position. J02 = -fx sx / z with sx = clamp(x / z).
+    let sx = if geo.clamped.0 {
+        -j0.z * z / pin.fx
+    } else {
+        x / z
+    };
+    let sy = if geo.clamped.1 {
+        -j1.z * z / pin.fy
+    } else {
+        y / z
+    };
+    let (dsx_dx, dsx_dz) = if geo.clamped.0 {
+        (0.0, 0.0)
+    } else {
+        (1.0 / z, -x / (z * z))
+    };
+    let (dsy_dy, dsy_dz) = if geo.clamped.1 {
+        (0.0, 0.0)
+    } else {
+        (1.0 / z, -y / (z * z))
+    };
+    g_p.x += g_j0.z * (-pin.fx / z) * dsx_dx;
+    g_p.y += g_j1.z * (-pin.fy / z) * dsy_dy;
+    g_p.z += g_j0.x * (-pin.fx / (z * z))
+        + g_j1.y * (-pin.fy / (z * z))
+        + g_j0.z * (pin.fx * sx / (z * z) - pin.fx / z * dsx_dz)
+        + g_j1.z * (pin.fy * sy / (z * z) - pin.fy / z * dsy_dz);
+
+    // cov_cam = W cov_world W^T: to cov_world, and to the pose rotation.
+    let g_cov_w = w_rot.transpose() * g_cov_cam * w_rot;
+    let mrot = geo.cov_cam * g_cov_cam - g_cov_cam * geo.cov_cam;
+    let mut g_phi = V3::new(
+        at(&mrot, 1, 2) - at(&mrot, 2, 1),
+        at(&mrot, 2, 0) - at(&mrot, 0, 2),
+        at(&mrot, 0, 1) - at(&mrot, 1, 0),
+    );
+
+    // cov_world = M M^T, M = R S.
+    let mm = geo.rot * M3::from_diagonal(geo.scale);
+    let g_m = 2.0 * g_cov_w * mm;
+    let mut g_rot_m = M3::ZERO;
+    for j in 0..3 {
+        let gc = g_m.col(j);
+        let rc = geo.rot.col(j);
+        out.log_scale[j] = gc.dot(rc) * geo.scale[j];
+        *g_rot_m.col_mut(j) = gc * geo.scale[j];
+    }
+    let [w, qx, qy, qz] = geo.q;
+    let g_qn = quat_to_mat_vjp(w, qx, qy, qz, &g_rot_m);
+    let dot = g_qn[0] * w + g_qn[1] * qx + g_qn[2] * qy + g_qn[3] * qz;
+    for (k, v) in out.quat.iter_mut().enumerate() {
+        *v = (g_qn[k] - geo.q[k] * dot) / geo.q_norm;
+    }
+
+    // Colour: SH coefficients, and the view direction (to the mean and the camera centre).
+    let mut g_mean = V3::ZERO;
+    let mut g_rho = V3::ZERO;
+    out.sh.fill(0.0);
+    if want_color {
+        let cam_pos = cam.position();
+        let raw = color_raw(g, i, sh_degree, cam_pos);
+        let gc = V3::new(
+            if raw.x > 0.0 { sg.color.x } else { 0.0 },
+            if raw.y > 0.0 { sg.color.y } else { 0.0 },
+            if raw.z > 0.0 { sg.color.z } else { 0.0 },
+        );
+        let v = view_dir(g, i, cam_pos);
+        let vn = v.length();
+        let mut b = [0.0; 16];
+        let mut db = [V3::ZERO; 16];
+        if sh_degree > 0 && vn > 0.0 {
+            sh::basis(sh_degree, v / vn, &mut b);
+            sh::basis_grad(sh_degree, v / vn, &mut db);
+        } else {
+            b[0] = sh::basis_c0();
+        }
+        let coeffs = &g.sh[i * g.sh_coeffs * 3..];
+        let mut g_dir = V3::ZERO;
+        for k in 0..sh::num_coeffs(sh_degree) {
+            out.sh[3 * k] = b[k] * gc.x;
+            out.sh[3 * k + 1] = b[k] * gc.y;
+            out.sh[3 * k + 2] = b[k] * gc.z;
+            let c = V3::new(coeffs[3 * k], coeffs[3 * k + 1], coeffs[3 * k + 2]);
+            g_dir += db[k] * c.dot(gc);
+        }
+        if sh_degree > 0 && vn > 0.0 {
+            let d = v / vn;
+            let g_v = (g_dir - d * d.dot(g_dir)) / vn;
+            g_mean += g_v;
+            g_rho += w_rot * g_v;
+        }
+    }
+
+    // p_cam = W mean + t.
+    g_mean += w_rot.transpose() * g_p;
+    out.mean.copy_from_slice(&g_mean.to_array());
+    g_rho += g_p;
+    g_phi += geo.p_cam.cross(g_p);
+    [g_rho.x, g_rho.y, g_rho.z, g_phi.x, g_phi.y, g_phi.z]
+}

@@ -1,0 +1,105 @@
+//! Binning of projected Gaussians into screen tiles, each tile's list sorted front to back.
+
+use rayon::prelude::*;
+
+use super::TILE;
+use crate::Real;
+
+/// Tile grid of an image.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Grid {
+    pub tiles_x: usize,
+    pub tiles_y: usize,
+}
+
+impl Grid {
+    pub fn new(width: usize, height: usize) -> Self {
+        Grid {
+            tiles_x: width.div_ceil(TILE),
+            tiles_y: height.div_ceil(TILE),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.tiles_x * self.tiles_y
+    }
+}
+
+/// Tile rectangle [x0, x1) x [y0, y1) in tile units; empty when culled.
+pub(crate) type Rect = [u32; 4];
+
+/// The tiles whose pixels a Gaussian at `xy` with half extents `ext` may touch.
+#[inline]
+pub(crate) fn rect(grid: &Grid, x: Real, y: Real, ex: Real, ey: Real) -> Rect {
+    let t = TILE as Real;
+    let lo = |v: Real, n: usize| ((v / t).floor().max(0.0) as usize).min(n) as u32;
+    let hi = |v: Real, n: usize| (((v / t).floor() + 1.0).max(0.0) as usize).min(n) as u32;
+    [
+        lo(x - ex, grid.tiles_x),
+        lo(y - ey, grid.tiles_y),
+        hi(x + ex, grid.tiles_x),
+        hi(y + ey, grid.tiles_y),
+    ]
+}
+
+#[inline]
+pub(crate) fn rect_area(r: &Rect) -> usize {
+    (r[2].saturating_sub(r[0]) as usize) * (r[3].saturating_sub(r[1]) as usize)
+}
+
+/// Per-tile lists: tile `t` composites `pair_gauss[tile_start[t]..tile_start[t + 1]]`.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Bins {
+    pub tile_start: Vec<u32>,
+    pub pair_gauss: Vec<u32>,
+}
+
+/// Bins Gaussians by tile and sorts each tile by depth (ties by index, so the order is
+/// deterministic).
+pub(crate) fn bin(grid: &Grid, rects: &[Rect], depth: &[Real]) -> Bins {
+    let n_tiles = grid.len();
+    let mut tile_start = vec![0u32; n_tiles + 1];
+    for r in rects {
+        for ty in r[1]..r[3] {
+            let row = ty as usize * grid.tiles_x;
+            for tx in r[0]..r[2] {
+                tile_start[row + tx as usize + 1] += 1;
+            }
+        }
+    }
+    for t in 0..n_tiles {
+        tile_start[t + 1] += tile_start[t];
+    }
+    let total = tile_start[n_tiles] as usize;
+    // Key: depth's f32 bit pattern (monotonic for positive floats) above the index.
+    let mut keys = vec![0u64; total];
+    let mut cursor: Vec<u32> = tile_start[..n_tiles].to_vec();
+    for (i, r) in rects.iter().enumerate() {
+        if rect_area(r) == 0 {
+            continue;
+        }
+        #[allow(clippy::unnecessary_cast)] // Real may be f64
+        let key = ((depth[i] as f32).to_bits() as u64) << 32 | i as u64;
+        for ty in r[1]..r[3] {
+            let row = ty as usize * grid.tiles_x;
+            for tx in r[0]..r[2] {
+                let c = &mut cursor[row + tx as usize];
+                keys[*c as usize] = key;
+                *c += 1;
+            }
+        }
+    }
+    let mut slices = Vec::with_capacity(n_tiles);
+    let mut rest = keys.as_mut_slice();
+    for t in 0..n_tiles {
+        let (head, tail) = rest.split_at_mut((tile_start[t + 1] - tile_start[t]) as usize);
+        slices.push(head);
+        rest = tail;
+    }
+    slices.into_par_iter().for_each(|s| s.sort_unstable());
+    let pair_gauss = keys.par_iter().map(|k| *k as u32).collect();
+    Bins {
+        tile_start,
+        pair_gauss,
+    }
+}

@@ -1,0 +1,118 @@
+//! The tiled, parallel forward pass against the plain per-pixel f64 reference.
+
+mod common;
+
+use common::{hard_scene, random_scene, reference_render, Scene};
+use legslam_core::raster::{render, RasterConfig, RenderOptions};
+
+/// Largest absolute difference, and the fraction of values off by more than `tol`.
+fn compare(fast: &[legslam_core::Real], reference: &[f64], tol: f64) -> (f64, f64) {
+    assert_eq!(fast.len(), reference.len());
+    let mut worst: f64 = 0.0;
+    let mut off = 0;
+    for (a, b) in fast.iter().zip(reference) {
+        let d = (*a as f64 - b).abs();
+        worst = worst.max(d);
+        if d > tol {
+            off += 1;
+        }
+    }
+    (worst, off as f64 / fast.len().max(1) as f64)
+}
+
+fn check(scene: &Scene, sh_degree: usize, cfg: RasterConfig) {
+    let opts = RenderOptions {
+        sh_degree,
+        config: cfg,
+        ..Default::default()
+    };
+    let fast = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
+    let reference = reference_render(scene, sh_degree, &cfg);
+    // f64 builds agree to rounding; f32 builds may flip a cut-off decision (alpha at exactly
+    // 1/255, or the stop) on a rare pixel, which moves it by at most a few percent.
+    let (tol, max_flipped) = if cfg!(feature = "f64") {
+        (1e-9, 0.0)
+    } else {
+        (2e-4, 0.003)
+    };
+    for (name, a, b) in [
+        ("color", &fast.color, &reference.color),
+        ("depth", &fast.depth, &reference.depth),
+        ("alpha", &fast.alpha, &reference.alpha),
+        ("features", &fast.features, &reference.features),
+    ] {
+        let (worst, flipped) = compare(a, b, tol);
+        assert!(
+            flipped <= max_flipped,
+            "{name}: {:.3}% of values differ by more than {tol} (worst {worst})",
+            100.0 * flipped
+        );
+        assert!(worst < 0.05, "{name}: worst difference {worst}");
+    }
+    assert!(
+        fast.alpha.iter().any(|&a| a > 0.5),
+        "the scene should cover pixels"
+    );
+}
+
+#[test]
+fn matches_reference_on_random_scenes() {
+    for seed in 0..6 {
+        let degree = seed as usize % 4;
+        let scene = random_scene(seed, 60, 67, 45, degree, 5);
+        check(&scene, degree, RasterConfig::default());
+    }
+}
+
+#[test]
+fn matches_reference_on_hard_scenes() {
+    for seed in 0..4 {
+        let scene = hard_scene(seed, 50, 37, 1, 3);
+        check(&scene, 1, RasterConfig::default());
+    }
+}
+
+#[test]
+fn matches_reference_without_early_stop() {
+    let cfg = RasterConfig {
+        transmittance_min: 0.0,
+        ..Default::default()
+    };
+    let scene = random_scene(42, 200, 40, 40, 0, 2);
+    check(&scene, 0, cfg);
+}
+
+#[test]
+fn renders_many_feature_channels_and_lower_degree_than_stored() {
+    let scene = random_scene(7, 30, 33, 20, 3, 130);
+    check(&scene, 3, RasterConfig::default());
+    // colour from only the first SH band of degree-3 coefficients
+    check(&scene, 0, RasterConfig::default());
+}
+
+#[test]
+fn empty_and_fully_culled_scenes_render_black() {
+    let mut scene = random_scene(3, 0, 20, 10, 0, 2);
+    let opts = RenderOptions::default();
+    let out = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
+    assert!(out.color.iter().all(|v| *v == 0.0) && out.alpha.iter().all(|v| *v == 0.0));
+    // one Gaussian behind the camera
+    let mut rng = common::Rng::new(1);
+    scene.push(&mut rng, [0.0, 0.0, -1.0], [-1.0; 3], 3.0);
+    let out = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
+    assert_eq!(out.num_pairs(), 0);
+    assert_eq!(out.radii, vec![0.0]);
+}
+
+#[test]
+fn render_is_deterministic() {
+    let scene = random_scene(11, 300, 64, 48, 1, 4);
+    let opts = RenderOptions {
+        sh_degree: 1,
+        ..Default::default()
+    };
+    let a = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
+    let b = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
+    assert_eq!(a.color, b.color);
+    assert_eq!(a.features, b.features);
+}
