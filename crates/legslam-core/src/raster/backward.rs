@@ -78,74 +78,71 @@ pub fn backward(
             }
             let list =
                 &bins.pair_gauss[bins.tile_start[t] as usize..bins.tile_start[t + 1] as usize];
-            let (tx, ty) = (t % st.grid.tiles_x, t / st.grid.tiles_x);
-            let local_feat: Vec<Real> = list
-                .iter()
-                .flat_map(|&i| &g.features[i as usize * k..][..k])
-                .copied()
-                .collect();
-            let zero_k = vec![0.0; k];
-            for y in ty * TILE..((ty + 1) * TILE).min(h) {
-                for x in tx * TILE..((tx + 1) * TILE).min(w) {
+            let (x0, y0) = ((t % st.grid.tiles_x) * TILE, (t / st.grid.tiles_x) * TILE);
+            let (x_end, y_end) = ((x0 + TILE).min(w), (y0 + TILE).min(h));
+            // Per pixel: the running transmittance and the running sum of gradient x value.
+            let mut trans = [1.0 as Real; TILE * TILE];
+            let mut prefix = [0.0 as Real; TILE * TILE];
+            // Per pixel: sum over channels of gradient x final value.
+            let mut total = [0.0 as Real; TILE * TILE];
+            for y in y0..y_end {
+                for x in x0..x_end {
                     let p = y * w + x;
-                    let end = st.pixel_end[p] as usize;
-                    if end == 0 {
-                        continue;
-                    }
-                    let gc = grads
-                        .color
-                        .map_or(V3::ZERO, |v| V3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]));
-                    let gd = grads.depth.map_or(0.0, |v| v[p]);
-                    let ga = grads.alpha.map_or(0.0, |v| v[p]);
-                    let gf = grads.features.map_or(&zero_k[..], |v| &v[p * k..][..k]);
-                    // sum over channels of gradient x final value.
-                    let mut total = 0.0;
-                    if grads.color.is_some() {
-                        total += gc.dot(V3::new(
-                            r.color[3 * p],
-                            r.color[3 * p + 1],
-                            r.color[3 * p + 2],
-                        ));
-                    }
-                    if grads.depth.is_some() {
-                        total += gd * r.depth[p];
-                    }
-                    if grads.features.is_some() {
-                        total += gf
-                            .iter()
-                            .zip(&r.features[p * k..][..k])
-                            .map(|(a, b)| a * b)
+                    let lp = (y - y0) * TILE + (x - x0);
+                    let mut sum = 0.0;
+                    if let Some(gc) = grads.color {
+                        sum += (0..3)
+                            .map(|c| gc[3 * p + c] * r.color[3 * p + c])
                             .sum::<Real>();
                     }
-                    let t_final = st.pixel_t[p];
-                    let (px, py) = (x as Real, y as Real);
-                    let mut trans: Real = 1.0;
-                    let mut prefix = 0.0;
-                    for j in 0..end {
-                        let s = &st.splats[list[j] as usize];
-                        let Some(a) = alpha_at(s, px, py, cfg) else {
+                    if let Some(gd) = grads.depth {
+                        sum += gd[p] * r.depth[p];
+                    }
+                    if let Some(gf) = grads.features {
+                        sum += dot(&gf[p * k..][..k], &r.features[p * k..][..k]);
+                    }
+                    total[lp] = sum;
+                }
+            }
+            // Gaussian-major, front to back, as in the forward pass.
+            for (j, &gi) in list.iter().enumerate() {
+                let s = &st.splats[gi as usize];
+                let f = &g.features[gi as usize * k..][..k];
+                let slot = &mut out[j * stride..][..stride];
+                let (xs, ys) = s.pixels(x0, y0, x_end, y_end);
+                for y in ys {
+                    for x in xs.clone() {
+                        let p = y * w + x;
+                        let lp = (y - y0) * TILE + (x - x0);
+                        if j >= st.pixel_end[p] as usize {
+                            continue;
+                        }
+                        let Some(a) = alpha_at(s, x as Real, y as Real, cfg) else {
                             continue;
                         };
-                        let wgt = a.alpha * trans;
-                        let f = &local_feat[j * k..][..k];
-                        let slot = &mut out[j * stride..][..stride];
+                        let t_now = trans[lp];
+                        let wgt = a.alpha * t_now;
+                        let gc = grads
+                            .color
+                            .map_or(V3::ZERO, |v| V3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]));
+                        let gd = grads.depth.map_or(0.0, |v| v[p]);
+                        let ga = grads.alpha.map_or(0.0, |v| v[p]);
                         let mut x_j = gc.dot(s.color) + gd * s.depth;
-                        if grads.features.is_some() {
-                            let mut dot = 0.0;
-                            for ((o, gfk), fk) in slot[SLOTS..].iter_mut().zip(gf).zip(f) {
+                        if let Some(gf) = grads.features {
+                            let gf = &gf[p * k..][..k];
+                            for (o, gfk) in slot[SLOTS..].iter_mut().zip(gf) {
                                 *o += wgt * gfk;
-                                dot += gfk * fk;
                             }
-                            x_j += dot;
+                            x_j += dot(gf, f);
                         }
                         slot[6] += wgt * gc.x;
                         slot[7] += wgt * gc.y;
                         slot[8] += wgt * gc.z;
                         slot[9] += wgt * gd;
-                        prefix += wgt * x_j;
-                        let next = trans * (1.0 - a.alpha);
-                        let behind = total - prefix + ga * (next - t_final);
-                        let g_alpha = trans * (x_j + ga) - behind / (1.0 - a.alpha);
+                        prefix[lp] += wgt * x_j;
+                        let next = t_now * (1.0 - a.alpha);
+                        let behind = total[lp] - prefix[lp] + ga * (next - st.pixel_t[p]);
+                        let g_alpha = t_now * (x_j + ga) - behind / (1.0 - a.alpha);
                         if !a.capped {
                             slot[5] += a.falloff * g_alpha;
                             let g_sigma = -a.alpha * g_alpha;
@@ -156,7 +153,7 @@ pub fn backward(
                             slot[3] += dx * dy * g_sigma;
                             slot[4] += 0.5 * dy * dy * g_sigma;
                         }
-                        trans = next;
+                        trans[lp] = next;
                     }
                 }
             }
@@ -259,4 +256,9 @@ pub fn backward(
         }
     }
     Ok(out)
+}
+
+#[inline]
+fn dot(a: &[Real], b: &[Real]) -> Real {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }

@@ -17,6 +17,30 @@ pub(crate) struct Splat {
     pub opacity: Real,
     pub depth: Real,
     pub color: V3,
+    /// Half extents (x, y) in pixels of the region where alpha can reach `alpha_min`.
+    pub ext: V2,
+}
+
+impl Splat {
+    /// Pixels of the tile at (x0, y0) that lie in the Gaussian's extent, as ranges of x, y.
+    #[inline(always)]
+    pub fn pixels(
+        &self,
+        x0: usize,
+        y0: usize,
+        x_end: usize,
+        y_end: usize,
+    ) -> (std::ops::Range<usize>, std::ops::Range<usize>) {
+        let lo = |c: Real, e: Real, start: usize| {
+            ((c - e).ceil().max(start as Real) as usize).max(start)
+        };
+        let hi =
+            |c: Real, e: Real, end: usize| (((c + e).floor() + 1.0).max(0.0) as usize).min(end);
+        (
+            lo(self.xy.x, self.ext.x, x0)..hi(self.xy.x, self.ext.x, x_end),
+            lo(self.xy.y, self.ext.y, y0)..hi(self.xy.y, self.ext.y, y_end),
+        )
+    }
 }
 
 /// One Gaussian's alpha at one pixel, with what the backward pass needs of it.
@@ -126,6 +150,7 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
                 opacity,
                 depth: geo.p_cam.z,
                 color,
+                ext,
             };
             (splat, r, ext.x.max(ext.y))
         })
@@ -162,8 +187,7 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
         .collect();
     outs.into_par_iter()
         .for_each(|(ty, (((((col, dep), alp), fea), end), tr))| {
-            let mut local: Vec<Splat> = Vec::new();
-            let mut local_feat: Vec<Real> = Vec::new();
+            let mut tile = TileState::new(k);
             for tx in 0..grid.tiles_x {
                 let t = ty * grid.tiles_x + tx;
                 let list =
@@ -171,55 +195,63 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
                 if list.is_empty() {
                     continue;
                 }
-                local.clear();
-                local.extend(list.iter().map(|&i| splats[i as usize]));
-                local_feat.clear();
-                for &i in list {
-                    local_feat.extend_from_slice(&g.features[i as usize * k..][..k]);
-                }
-                let x_end = ((tx + 1) * TILE).min(w);
-                let y_end = ((ty + 1) * TILE).min(h);
-                for y in ty * TILE..y_end {
-                    for x in tx * TILE..x_end {
-                        let p = (y - ty * TILE) * w + x;
-                        let (px, py) = (x as Real, y as Real);
-                        let mut trans: Real = 1.0;
-                        let mut c = V3::ZERO;
-                        let mut d = 0.0;
-                        let mut last = 0;
-                        let f_out = if k > 0 {
-                            &mut fea[p * k..][..k]
-                        } else {
-                            &mut [][..]
-                        };
-                        for (j, s) in local.iter().enumerate() {
-                            let Some(a) = alpha_at(s, px, py, cfg) else {
+                let (x0, y0) = (tx * TILE, ty * TILE);
+                let (x_end, y_end) = ((x0 + TILE).min(w), (y0 + TILE).min(h));
+                tile.reset((x_end - x0) * (y_end - y0));
+                // Gaussian-major, front to back: each pixel still sees its Gaussians in depth
+                // order, but only the pixels inside a Gaussian's extent are visited.
+                for (j, &gi) in list.iter().enumerate() {
+                    let s = &splats[gi as usize];
+                    let (xs, ys) = s.pixels(x0, y0, x_end, y_end);
+                    let f = &g.features[gi as usize * k..][..k];
+                    for y in ys {
+                        for x in xs.clone() {
+                            let lp = (y - y0) * TILE + (x - x0);
+                            if tile.done[lp] {
+                                continue;
+                            }
+                            let Some(a) = alpha_at(s, x as Real, y as Real, cfg) else {
                                 continue;
                             };
+                            let trans = tile.trans[lp];
                             let next = trans * (1.0 - a.alpha);
                             if next < cfg.transmittance_min {
-                                break;
+                                tile.done[lp] = true;
+                                tile.active -= 1;
+                                continue;
                             }
                             let wgt = a.alpha * trans;
-                            c += s.color * wgt;
-                            d += s.depth * wgt;
-                            for (o, f) in f_out.iter_mut().zip(&local_feat[j * k..][..k]) {
-                                *o += wgt * f;
+                            tile.color[lp] += s.color * wgt;
+                            tile.depth[lp] += s.depth * wgt;
+                            for (o, fv) in tile.feat[lp * k..][..k].iter_mut().zip(f) {
+                                *o += wgt * fv;
                             }
-                            trans = next;
-                            last = j + 1;
+                            tile.trans[lp] = next;
+                            tile.end[lp] = j as u32 + 1;
                         }
+                    }
+                    if tile.active == 0 {
+                        break;
+                    }
+                }
+                for y in y0..y_end {
+                    for x in x0..x_end {
+                        let lp = (y - y0) * TILE + (x - x0);
+                        let p = (y - y0) * w + x;
                         if !col.is_empty() {
-                            col[3 * p..3 * p + 3].copy_from_slice(&c.to_array());
+                            col[3 * p..3 * p + 3].copy_from_slice(&tile.color[lp].to_array());
                         }
                         if !dep.is_empty() {
-                            dep[p] = d;
+                            dep[p] = tile.depth[lp];
                         }
                         if !alp.is_empty() {
-                            alp[p] = 1.0 - trans;
+                            alp[p] = 1.0 - tile.trans[lp];
                         }
-                        end[p] = last as u32;
-                        tr[p] = trans;
+                        if k > 0 {
+                            fea[p * k..][..k].copy_from_slice(&tile.feat[lp * k..][..k]);
+                        }
+                        end[p] = tile.end[lp];
+                        tr[p] = tile.trans[lp];
                     }
                 }
             }
@@ -244,4 +276,39 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
             options: *opts,
         },
     })
+}
+
+/// Per-pixel accumulators of one tile, indexed `(y - y0) * TILE + (x - x0)`.
+struct TileState {
+    trans: [Real; TILE * TILE],
+    color: [V3; TILE * TILE],
+    depth: [Real; TILE * TILE],
+    end: [u32; TILE * TILE],
+    done: [bool; TILE * TILE],
+    feat: Vec<Real>,
+    active: usize,
+}
+
+impl TileState {
+    fn new(k: usize) -> Self {
+        TileState {
+            trans: [1.0; TILE * TILE],
+            color: [V3::ZERO; TILE * TILE],
+            depth: [0.0; TILE * TILE],
+            end: [0; TILE * TILE],
+            done: [false; TILE * TILE],
+            feat: vec![0.0; TILE * TILE * k],
+            active: 0,
+        }
+    }
+
+    fn reset(&mut self, pixels: usize) {
+        self.trans.fill(1.0);
+        self.color.fill(V3::ZERO);
+        self.depth.fill(0.0);
+        self.end.fill(0);
+        self.done.fill(false);
+        self.feat.fill(0.0);
+        self.active = pixels;
+    }
 }

@@ -129,9 +129,11 @@ pub(crate) fn extent(geo: &Geometry, opacity: Real, cfg: &RasterConfig) -> Optio
     if !(level > 0.0) {
         return None;
     }
+    // Padded a hair so that rounding never drops a pixel whose alpha reaches the cut-off.
+    let pad = |v: Real| v * 1.0001 + 1e-3;
     Some(V2::new(
-        (2.0 * level * geo.cov2d.x).sqrt(),
-        (2.0 * level * geo.cov2d.z).sqrt(),
+        pad((2.0 * level * geo.cov2d.x).sqrt()),
+        pad((2.0 * level * geo.cov2d.z).sqrt()),
     ))
 }
 
