@@ -43,11 +43,12 @@ def pose_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (qx, qy, qz, qw), qw >= 0, of a rotation matrix."""
     # The eigenvector of Bar-Itzhack's symmetric matrix: stable for every rotation.
     m = R
+    a, b, c = m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]  # 4 w (x, y, z)
     Kq = np.array([
-        [m[0, 0] - m[1, 1] - m[2, 2], m[1, 0] + m[0, 1], m[2, 0] + m[0, 2], m[1, 2] - m[2, 1]],
-        [m[1, 0] + m[0, 1], m[1, 1] - m[0, 0] - m[2, 2], m[2, 1] + m[1, 2], m[2, 0] - m[0, 2]],
-        [m[2, 0] + m[0, 2], m[2, 1] + m[1, 2], m[2, 2] - m[0, 0] - m[1, 1], m[0, 1] - m[1, 0]],
-        [m[1, 2] - m[2, 1], m[2, 0] - m[0, 2], m[0, 1] - m[1, 0], m[0, 0] + m[1, 1] + m[2, 2]],
+        [m[0, 0] - m[1, 1] - m[2, 2], m[1, 0] + m[0, 1], m[2, 0] + m[0, 2], a],
+        [m[1, 0] + m[0, 1], m[1, 1] - m[0, 0] - m[2, 2], m[2, 1] + m[1, 2], b],
+        [m[2, 0] + m[0, 2], m[2, 1] + m[1, 2], m[2, 2] - m[0, 0] - m[1, 1], c],
+        [a, b, c, m[0, 0] + m[1, 1] + m[2, 2]],
     ]) / 3.0
     w, v = np.linalg.eigh(Kq)
     q = v[:, np.argmax(w)]

@@ -1,0 +1,397 @@
+"""The built-in scene: a procedural living room, ray cast (analytically, with numpy) into an
+RGB-D sequence with ground-truth poses and per-pixel class labels, so that legslam runs and is
+tested with no download.
+
+The room (walls, floor, ceiling, a rug) holds a table, two chairs, a sofa, a plant, a lamp, a
+bookshelf and a picture. Surfaces carry solid (3D) procedural textures, band-limited so they do
+not alias, and Lambertian shading under fixed lights: a point looks the same from every view,
+as photometric tracking assumes. Depth is z-depth in metres. The camera moves like a hand-held
+one around the table, ~2 cm and ~0.7 degrees per frame, looking at the furniture.
+
+The sequence is written in the plain-folder format (see folder.py): color/, depth/ (16-bit PNG,
+depth_scale 5000), labels/ (8-bit PNG class ids, names in classes.txt), camera.json and
+groundtruth.txt (TUM, c2w), so `legslam.datasets.open(path)` reads it like any dataset. The
+same seed gives the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+VERSION = 1  # bump when the scene or its files change, so cached copies are regenerated
+FPS = 30.0
+DEPTH_SCALE = 5000.0
+CLASS_NAMES = ["wall", "floor", "ceiling", "rug", "table", "chair", "sofa", "plant", "lamp",
+               "bookshelf", "picture"]
+ROOM_MIN, ROOM_MAX = np.array([-3.5, -3.0, 0.0]), np.array([3.5, 3.0, 2.7])  # world z is up
+LIGHTS = [(np.array([0.35, -0.45, 0.82]), 0.55), (np.array([-0.6, 0.5, 0.62]), 0.25)]
+AMBIENT = 0.3
+
+
+@dataclass
+class Part:
+    """One primitive: kind "box" (centre, half sizes, yaw about z), "sphere" (centre, radius)
+    or "cylinder" (vertical: centre of base, radius, height). Material: base colour (RGB in
+    [0, 1]) and texture kind "noise", "tiles", "books" or "paint"."""
+
+    kind: str
+    centre: np.ndarray
+    size: np.ndarray
+    cls: int
+    colour: np.ndarray
+    texture: str = "noise"
+    yaw: float = 0.0
+
+
+def _box(c, half, cls, colour, texture="noise", yaw=0.0) -> Part:
+    return Part("box", np.asarray(c, float), np.asarray(half, float), cls, np.asarray(colour, float), texture, yaw)
+
+
+def build_scene(rng: np.random.Generator) -> list:
+    """The furniture of the room (walls, floor and ceiling are the room box itself)."""
+    C = {n: i for i, n in enumerate(CLASS_NAMES)}
+    jit = lambda s=0.08: rng.uniform(-s, s)  # noqa: E731  small seeded placement changes
+    tint = lambda c: np.clip(np.asarray(c) + rng.uniform(-0.06, 0.06, 3), 0, 1)  # noqa: E731
+    parts = [_box((0, 0, 0.005), (1.6, 1.1, 0.005), C["rug"], tint((0.55, 0.2, 0.2)), "paint")]
+
+    # Table: top and four legs, turned a little.
+    tx, ty, yaw = jit(), jit(), rng.uniform(-0.15, 0.15)
+    wood = tint((0.55, 0.36, 0.2))
+    rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    parts.append(_box((tx, ty, 0.745), (0.7, 0.4, 0.025), C["table"], wood, yaw=yaw))
+    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        lx, ly = rot @ (sx * 0.62, sy * 0.32)
+        parts.append(_box((tx + lx, ty + ly, 0.36), (0.03, 0.03, 0.36), C["table"], wood * 0.8, yaw=yaw))
+
+    # Two chairs facing the table from its ends.
+    for side in (1, -1):
+        cx, cy = side * (1.05 + jit(0.05)), jit(0.1)
+        col = tint((0.2, 0.35, 0.6))
+        parts.append(_box((cx, cy, 0.46), (0.23, 0.23, 0.03), C["chair"], col))
+        parts.append(_box((cx + side * 0.21, cy, 0.75), (0.025, 0.23, 0.27), C["chair"], col))
+        for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+            parts.append(_box((cx + sx * 0.19, cy + sy * 0.19, 0.215), (0.02, 0.02, 0.215), C["chair"], col * 0.7))
+
+    # Sofa against the +y wall: seat, back, two arms.
+    sx = jit(0.2)
+    fabric = tint((0.3, 0.5, 0.3))
+    parts += [_box((sx, 2.5, 0.22), (1.0, 0.45, 0.22), C["sofa"], fabric),
+              _box((sx, 2.85, 0.55), (1.0, 0.12, 0.55), C["sofa"], fabric * 0.85),
+              _box((sx - 1.05, 2.5, 0.35), (0.1, 0.45, 0.35), C["sofa"], fabric * 0.9),
+              _box((sx + 1.05, 2.5, 0.35), (0.1, 0.45, 0.35), C["sofa"], fabric * 0.9)]
+
+    # Plant in a corner: pot and foliage; lamp in another: base, pole, shade.
+    px, py = 2.9 + jit(0.1), -2.4 + jit(0.1)
+    parts += [Part("cylinder", np.array([px, py, 0.0]), np.array([0.2, 0.4]), C["plant"], tint((0.6, 0.3, 0.15))),
+              Part("sphere", np.array([px, py, 0.8]), np.array([0.42]), C["plant"], tint((0.2, 0.55, 0.15)))]
+    lx, ly = -2.9 + jit(0.1), 2.4 + jit(0.1)
+    brass = tint((0.8, 0.7, 0.35))
+    parts += [Part("cylinder", np.array([lx, ly, 0.0]), np.array([0.18, 0.04]), C["lamp"], brass),
+              Part("cylinder", np.array([lx, ly, 0.04]), np.array([0.025, 1.4]), C["lamp"], brass),
+              Part("cylinder", np.array([lx, ly, 1.35]), np.array([0.25, 0.3]), C["lamp"], tint((0.95, 0.9, 0.75)))]
+
+    # Bookshelf against the -x wall; a picture on the -y wall.
+    parts.append(_box((-3.3, -0.5 + jit(0.2), 0.95), (0.2, 0.6, 0.95), C["bookshelf"], tint((0.45, 0.3, 0.2)), "books"))
+    parts.append(_box((jit(0.4), -2.985, 1.55), (0.6, 0.015, 0.4), C["picture"], tint((0.5, 0.5, 0.6)), "paint"))
+    return parts
+
+
+# --- camera path ------------------------------------------------------------------------
+
+def camera_path(n_frames: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 4, 4) c2w poses: a slow elliptic walk round the table with hand-held sway, looking
+    at a target that drifts over the furniture. Speeds are per second, so longer sequences
+    just continue the walk."""
+    t = np.arange(n_frames) / FPS
+    phase = rng.uniform(0, 2 * np.pi, 8)
+    ang = phase[0] + 0.33 * t  # ~0.63 degrees of the ellipse per frame, ~2 cm at its radius
+    pos = np.stack([1.9 * np.cos(ang), 1.45 * np.sin(ang), 1.35 + 0.06 * np.sin(0.9 * t + phase[1])], 1)
+    pos += 0.012 * np.stack([np.sin(2.1 * t + phase[2]), np.sin(2.7 * t + phase[3]), np.sin(3.3 * t + phase[4])], 1)
+    target = np.stack([0.5 * np.sin(0.45 * t + phase[5]), 0.4 * np.sin(0.6 * t + phase[6]),
+                       0.55 + 0.15 * np.sin(0.8 * t + phase[7])], 1)
+    roll = np.radians(2.0) * np.sin(1.1 * t + phase[1])
+    poses = np.tile(np.eye(4), (n_frames, 1, 1))
+    for i in range(n_frames):
+        z = target[i] - pos[i]
+        z /= np.linalg.norm(z)
+        x = np.cross(z, [0.0, 0.0, 1.0])  # OpenCV axes: x right, y down, z forward
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        c, s = np.cos(roll[i]), np.sin(roll[i])
+        poses[i, :3, :3] = np.stack([c * x + s * y, -s * x + c * y, z], 1)
+        poses[i, :3, 3] = pos[i]
+    return poses
+
+
+# --- ray casting ------------------------------------------------------------------------
+# Rays are three HxW component arrays (dx, dy, dz): elementwise work on them is several times
+# faster than on (..., 3) arrays. The casting loop finds only distances; normals are computed
+# afterwards for the surface that won each pixel.
+
+def _t_box(p: Part, o, dx, dy, dz):
+    ox, oy, oz = o - p.centre
+    if p.yaw:  # into the box's frame
+        c, s = np.cos(p.yaw), np.sin(p.yaw)
+        ox, oy, dx, dy = c * ox + s * oy, -s * ox + c * oy, c * dx + s * dy, -s * dx + c * dy
+    tnear, tfar = -np.inf, np.inf
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for oi, di, hi in ((ox, dx, p.size[0]), (oy, dy, p.size[1]), (oz, dz, p.size[2])):
+            t1, t2 = (-hi - oi) / di, (hi - oi) / di
+            tnear, tfar = np.maximum(tnear, np.minimum(t1, t2)), np.minimum(tfar, np.maximum(t1, t2))
+    return np.where((tnear <= tfar) & (tnear > 0), tnear, np.inf)
+
+
+def _t_sphere(p: Part, o, dx, dy, dz):
+    ox, oy, oz = o - p.centre
+    a, b = dx * dx + dy * dy + dz * dz, dx * ox + dy * oy + dz * oz
+    disc = b * b - a * (ox * ox + oy * oy + oz * oz - p.size[0] ** 2)
+    with np.errstate(invalid="ignore"):
+        t = (-b - np.sqrt(disc)) / a
+    return np.where((disc >= 0) & (t > 0), t, np.inf)
+
+
+def _t_cylinder(p: Part, o, dx, dy, dz):
+    r, h = p.size
+    ox, oy, oz = o - p.centre
+    a, b = dx * dx + dy * dy, dx * ox + dy * oy
+    disc = b * b - a * (ox * ox + oy * oy - r * r)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ts = (-b - np.sqrt(disc)) / a
+        zs = oz + ts * dz
+        ts = np.where((disc >= 0) & (ts > 0) & (zs >= 0) & (zs <= h), ts, np.inf)
+        tc = np.where(dz < 0, (h - oz) / dz, -oz / dz)  # the top seen from above, the bottom from below
+    cx, cy = ox + tc * dx, oy + tc * dy
+    tc = np.where((tc > 0) & (cx * cx + cy * cy <= r * r), tc, np.inf)
+    return np.minimum(ts, tc)
+
+
+def _normals(p: Part, q):
+    """Outward unit normals of part p at its surface points q (N, 3)."""
+    q = q - p.centre
+    if p.kind == "sphere":
+        return q / p.size[0]
+    if p.kind == "cylinder":
+        r, h = p.size
+        rho = np.hypot(q[:, 0], q[:, 1])
+        side = np.abs(rho - r) < np.minimum(np.abs(q[:, 2]), np.abs(q[:, 2] - h))
+        cap = np.stack([0 * rho, 0 * rho, np.sign(q[:, 2] - h / 2)], 1)
+        return np.where(side[:, None], np.stack([q[:, 0] / r, q[:, 1] / r, 0 * rho], 1), cap)
+    c, s = np.cos(p.yaw), np.sin(p.yaw)
+    Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    ql = np.einsum("nc,cd->nd", q, Rz)  # into the box's frame; the face is where |q| / half size is largest
+    axis = np.abs(ql / p.size).argmax(1)
+    nl = np.zeros_like(ql)
+    nl[np.arange(len(ql)), axis] = np.sign(ql[np.arange(len(ql)), axis])
+    return np.einsum("nd,cd->nc", nl, Rz)
+
+
+HIT = {"box": _t_box, "sphere": _t_sphere, "cylinder": _t_cylinder}
+
+
+def _bounds(p: Part) -> np.ndarray:
+    """(8, 3) corners of a world box that contains the part."""
+    if p.kind == "box":
+        r = np.hypot(p.size[0], p.size[1]) if p.yaw else None
+        half = np.array([r, r, p.size[2]]) if r else p.size
+        lo, hi = p.centre - half, p.centre + half
+    elif p.kind == "sphere":
+        lo, hi = p.centre - p.size[0], p.centre + p.size[0]
+    else:
+        r, h = p.size
+        lo, hi = p.centre - [r, r, 0], p.centre + [r, r, h]
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def _pixel_rect(p: Part, K, T, w, h):
+    """Slices of the image rows and columns the part can cover (None when it is off screen)."""
+    pc = (T[:3, :3].T @ (_bounds(p) - T[:3, 3]).T).T
+    if (pc[:, 2] < 0.05).all():
+        return None
+    if (pc[:, 2] < 0.05).any():  # straddles the camera plane: the whole image, to be safe
+        return slice(0, h), slice(0, w)
+    u = K[0, 0] * pc[:, 0] / pc[:, 2] + K[0, 2]
+    v = K[1, 1] * pc[:, 1] / pc[:, 2] + K[1, 2]
+    u0, u1 = max(int(np.floor(u.min())), 0), min(int(np.ceil(u.max())) + 1, w)
+    v0, v1 = max(int(np.floor(v.min())), 0), min(int(np.ceil(v.max())) + 1, h)
+    return (slice(v0, v1), slice(u0, u1)) if u0 < u1 and v0 < v1 else None
+
+
+def _room(o, dx, dy, dz):
+    """Exit distance from inside the room box and the surface hit: 0 wall, 1 floor, 2 ceiling
+    (the class ids of CLASS_NAMES)."""
+    with np.errstate(divide="ignore"):
+        tx, ty, tz = [np.where(d > 0, (ROOM_MAX[i] - o[i]) / d, (ROOM_MIN[i] - o[i]) / d)
+                      for i, d in enumerate((dx, dy, dz))]
+    t = np.minimum(np.minimum(tx, ty), tz)
+    surface = np.where(tz <= t, np.where(dz < 0, 1, 2), 0)
+    return t, surface
+
+
+def _room_normals(q):
+    dist = np.concatenate([q - ROOM_MIN, ROOM_MAX - q], 1)  # to the six faces
+    face = dist.argmin(1)
+    n = np.zeros_like(q)
+    n[np.arange(len(q)), face % 3] = np.where(face < 3, 1.0, -1.0)  # pointing into the room
+    return n
+
+
+# --- materials --------------------------------------------------------------------------
+
+KINDS = ("noise", "tiles", "books", "paint")
+
+
+class Textures:
+    """Seeded solid textures. Each is a sum of a few sinusoids with random directions and
+    frequencies (1.5-7 cycles per metre, far below the pixel rate at these distances), which
+    looks like smooth coloured noise and gives photometric tracking gradients everywhere."""
+
+    def __init__(self, rng: np.random.Generator, n_waves: int = 6):
+        dirs = rng.normal(size=(n_waves, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        self.k = (dirs * rng.uniform(1.5, 7.0, (n_waves, 1)) * 2 * np.pi).astype(np.float32)
+        self.phase = rng.uniform(0, 2 * np.pi, n_waves).astype(np.float32)
+        self.tint = rng.uniform(-1, 1, (n_waves, 3)).astype(np.float32)
+        self.books = rng.uniform(0.15, 0.9, (16, 3)).astype(np.float32)
+
+    def albedo(self, kinds: np.ndarray, base: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """RGB albedo in [0, 1] at points p (N, 3) of surfaces with base colours (N, 3) and
+        texture kinds (N,), indices into KINDS."""
+        # float32 and einsum (not BLAS, whose threads only contend on (N, 3) products) keep
+        # this, the costliest step of rendering, fast.
+        p, base = p.astype(np.float32), base.astype(np.float32)
+        w = np.sin(np.einsum("nj,kj->nk", p, self.k) + self.phase)  # (N, n_waves) in [-1, 1]
+        noise = 0.12 * np.einsum("nk,kc->nc", w, self.tint) / np.sqrt(len(self.phase))
+        shade = 1.0 + 0.25 * w[:, :3].mean(1, keepdims=True)
+        m = kinds == KINDS.index("tiles")  # 0.5 m floor tiles with soft grout lines
+        tile = np.tanh(12 * np.sin(np.pi * p[m, 0] / 0.5) * np.sin(np.pi * p[m, 1] / 0.5))
+        shade[m] *= 1.0 + 0.15 * tile[:, None]
+        m = kinds == KINDS.index("books")  # shelves of coloured book spines along the wall
+        idx = (np.floor(p[m, 1] / 0.06) + 7 * np.floor(p[m, 2] / 0.38)).astype(np.int64) % len(self.books)
+        board = np.abs(np.sin(np.pi * p[m, 2] / 0.38)) < 0.15
+        base[m] = np.where(board[:, None], base[m] * 0.5, self.books[idx])
+        m = kinds == KINDS.index("paint")  # bold colour fields
+        base[m] += 0.3 * np.sin(3.0 * (w[m, :3] + w[m, 3:6]))
+        return np.clip(base * shade + noise, 0.0, 1.0)
+
+
+ROOM_MATERIALS = [((0.78, 0.74, 0.66), "noise"), ((0.6, 0.45, 0.3), "tiles"), ((0.9, 0.9, 0.88), "noise")]
+
+
+def render(parts: list, textures: Textures, K: np.ndarray, pose: np.ndarray, width: int, height: int):
+    """(rgb uint8 HxWx3, z-depth float64 HxW metres, labels uint8 HxW) seen from pose (c2w)."""
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    # Rays with unit z in the camera: the hit distance t along them is the z-depth.
+    xc, yc = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    R, o = pose[:3, :3], pose[:3, 3]
+    dx, dy, dz = (R[i, 0] * xc + R[i, 1] * yc + R[i, 2] for i in range(3))
+    t, surface = _room(o, dx, dy, dz)
+    for k, p in enumerate(parts):
+        rect = _pixel_rect(p, K, pose, width, height)
+        if rect is None:
+            continue
+        tp = HIT[p.kind](p, o, dx[rect], dy[rect], dz[rect])
+        closer = tp < t[rect]
+        t[rect][closer] = tp[closer]
+        surface[rect][closer] = 3 + k  # materials: the room's three, then the parts
+    q = o + t.reshape(-1, 1) * np.stack([dx.ravel(), dy.ravel(), dz.ravel()], 1)
+    surface = surface.ravel()
+    materials = ROOM_MATERIALS + [(p.colour, p.texture) for p in parts]
+    base = np.array([m[0] for m in materials])[surface]
+    normals = np.empty_like(q)
+    room = surface < 3
+    normals[room] = _room_normals(q[room])
+    for k in np.unique(surface[~room]):
+        m = surface == k
+        normals[m] = _normals(parts[k - 3], q[m])
+    kinds = np.array([KINDS.index(m[1]) for m in materials])[surface]
+    albedo = textures.albedo(kinds, base, q)
+    light = np.full(len(q), AMBIENT)
+    for direction, strength in LIGHTS:
+        light += strength * np.clip(np.einsum("nc,c->n", normals, direction / np.linalg.norm(direction)), 0, None)
+    rgb = np.clip(albedo * light[:, None], 0, 1).reshape(height, width, 3)
+    labels = np.array([0, 1, 2] + [p.cls for p in parts], dtype=np.uint8)[surface].reshape(height, width)
+    return (rgb * 255 + 0.5).astype(np.uint8), t, labels
+
+
+# --- writing ----------------------------------------------------------------------------
+
+def intrinsics(width: int, height: int) -> np.ndarray:
+    """A 64-degree horizontal field of view with the principal point at the image centre."""
+    f = 0.8 * width
+    return np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
+
+
+def _write_png(path: Path, img: np.ndarray) -> None:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", img)
+    if not ok:
+        raise OSError(f"cannot encode {path}")
+    path.write_bytes(buf.tobytes())
+
+
+def generate(out_dir, n_frames: int = 100, width: int = 320, height: int = 240, seed: int = 0) -> Path:
+    """Render the scene into out_dir (created; existing files of the same names are replaced)
+    and return its path, ready for legslam.datasets.open."""
+    from ..eval.trajectory import write_tum
+
+    if n_frames < 1 or width < 16 or height < 16:
+        raise ValueError(f"need n_frames >= 1 and images of at least 16x16, got {n_frames}, {width}x{height}")
+    out = Path(out_dir)
+    for sub in ("color", "depth", "labels"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    parts, textures, poses = build_scene(rng), Textures(rng), camera_path(n_frames, rng)
+    K = intrinsics(width, height)
+    for i, pose in enumerate(poses):
+        rgb, depth, labels = render(parts, textures, K, pose, width, height)
+        raw = np.round(depth * DEPTH_SCALE)
+        if raw.max() > 65535:
+            raise AssertionError("depth beyond the 16-bit range; the room is too large for DEPTH_SCALE")
+        name = f"{i:06d}.png"
+        _write_png(out / "color" / name, rgb[..., ::-1])  # cv2 writes BGR
+        _write_png(out / "depth" / name, raw.astype(np.uint16))
+        _write_png(out / "labels" / name, labels)
+    camera = {"width": width, "height": height, "fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2],
+              "depth_scale": DEPTH_SCALE}
+    (out / "camera.json").write_text(json.dumps(camera, indent=1) + "\n")
+    (out / "classes.txt").write_text("\n".join(CLASS_NAMES) + "\n")
+    write_tum(out / "groundtruth.txt", np.arange(n_frames) / FPS, poses)
+    params = {"version": VERSION, "n_frames": n_frames, "width": width, "height": height, "seed": seed}
+    (out / "scene.json").write_text(json.dumps(params, indent=1) + "\n")
+    return out
+
+
+def cache_dir() -> Path:
+    """Where default_scene keeps its copies: $LEGSLAM_CACHE, else $XDG_CACHE_HOME/legslam,
+    else ~/.cache/legslam."""
+    if os.environ.get("LEGSLAM_CACHE"):
+        return Path(os.environ["LEGSLAM_CACHE"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "legslam"
+
+
+def default_scene(n_frames: int = 100, width: int = 320, height: int = 240, seed: int = 0) -> Path:
+    """The scene with these parameters, generated into the cache on first use and reused after."""
+    out = cache_dir() / f"synthetic-v{VERSION}" / f"{width}x{height}-{n_frames}f-seed{seed}"
+    if (out / "scene.json").is_file():  # written last, so its presence means complete
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # Render beside the target and rename: an interrupted run never leaves a partial scene.
+    tmp = Path(tempfile.mkdtemp(prefix=out.name + ".", dir=out.parent))
+    try:
+        generate(tmp, n_frames, width, height, seed)
+        try:
+            tmp.rename(out)
+        except OSError:  # another process finished first
+            if not (out / "scene.json").is_file():
+                raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out
