@@ -1,5 +1,5 @@
 """Trajectory metrics in evo's conventions: ATE (APE of the translation part after Umeyama
-alignment, as `evo_ape tum gt est -a [-s]`), RPE (as `evo_rpe tum gt est --delta 1`), and
+alignment, as `evo_ape tum gt est -a [-s]`), RPE (as `evo_rpe`), and
 TUM-format trajectory files. Poses are camera-to-world 4x4 matrices; distances in metres.
 """
 
@@ -156,14 +156,16 @@ def ate_rmse(gt, est, align: str = "se3", max_diff: float = 0.01) -> float:
     return ate(gt, est, align, max_diff)["rmse"]
 
 
-def rpe(gt, est, delta: int = 1, max_diff: float = 0.01) -> dict:
-    """Relative pose error over pairs (i, i+delta) of corresponding poses, as evo_rpe with
-    `--delta delta --delta_unit f`: {"trans": stats in metres, "rot": stats in degrees}."""
+def rpe(gt, est, delta: int = 1, all_pairs: bool = False, max_diff: float = 0.01) -> dict:
+    """Relative pose error over pose pairs delta frames apart, as `evo_rpe tum gt est --delta
+    delta --delta_unit f [--all_pairs]`: pairs (0, d), (d, 2d), ... by default, every (i, i + d)
+    with all_pairs. Returns {"trans": stats in metres, "rot": stats in degrees}."""
     pg, pe = _load_pair(gt, est, max_diff)
     if not (isinstance(delta, (int, np.integer)) and 1 <= delta < len(pg)):
         raise TrajectoryError(f"delta must be an integer in [1, {len(pg) - 1}], got {delta!r}")
-    rel_g = np.linalg.inv(pg[:-delta]) @ pg[delta:]
-    rel_e = np.linalg.inv(pe[:-delta]) @ pe[delta:]
+    i = np.arange(len(pg) - delta) if all_pairs else np.arange(0, len(pg) - delta, delta)
+    rel_g = np.linalg.inv(pg[i]) @ pg[i + delta]
+    rel_e = np.linalg.inv(pe[i]) @ pe[i + delta]
     E = np.linalg.inv(rel_g) @ rel_e
     trans = np.linalg.norm(E[:, :3, 3], axis=1)
     cos = np.clip((np.trace(E[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1.0, 1.0)
