@@ -112,10 +112,10 @@ def camera_path(n_frames: int, rng: np.random.Generator) -> np.ndarray:
     t = np.arange(n_frames) / FPS
     phase = rng.uniform(0, 2 * np.pi, 8)
     ang = phase[0] + 0.33 * t  # ~0.63 degrees of the ellipse per frame, ~2 cm at its radius
-    pos = np.stack([1.9 * np.cos(ang), 1.45 * np.sin(ang), 1.35 + 0.06 * np.sin(0.9 * t + phase[1])], 1)
+    pos = np.stack([2.1 * np.cos(ang), 1.55 * np.sin(ang), 1.4 + 0.06 * np.sin(0.9 * t + phase[1])], 1)
     pos += 0.012 * np.stack([np.sin(2.1 * t + phase[2]), np.sin(2.7 * t + phase[3]), np.sin(3.3 * t + phase[4])], 1)
-    target = np.stack([0.5 * np.sin(0.45 * t + phase[5]), 0.4 * np.sin(0.6 * t + phase[6]),
-                       0.55 + 0.15 * np.sin(0.8 * t + phase[7])], 1)
+    target = np.stack([0.6 * np.sin(0.25 * t + phase[5]), 0.5 * np.sin(0.35 * t + phase[6]),
+                       0.7 + 0.2 * np.sin(0.5 * t + phase[7])], 1)
     roll = np.radians(2.0) * np.sin(1.1 * t + phase[1])
     poses = np.tile(np.eye(4), (n_frames, 1, 1))
     for i in range(n_frames):
@@ -172,24 +172,26 @@ def _t_cylinder(p: Part, o, dx, dy, dz):
     return np.minimum(ts, tc)
 
 
-def _normals(p: Part, q):
-    """Outward unit normals of part p at its surface points q (N, 3)."""
-    q = q - p.centre
-    if p.kind == "sphere":
-        return q / p.size[0]
-    if p.kind == "cylinder":
-        r, h = p.size
+def _normals(kind: str, q, centre, size, yaw):
+    """Outward unit normals at surface points q (N, 3) of parts of one kind, each point with
+    its part's centre (N, 3), size (N, 3) and yaw (N,): all parts of a kind in one pass."""
+    q = q - centre
+    if kind == "sphere":
+        return q / size[:, :1]
+    if kind == "cylinder":
+        r, h = size[:, 0], size[:, 1]
         rho = np.hypot(q[:, 0], q[:, 1])
         side = np.abs(rho - r) < np.minimum(np.abs(q[:, 2]), np.abs(q[:, 2] - h))
-        cap = np.stack([0 * rho, 0 * rho, np.sign(q[:, 2] - h / 2)], 1)
-        return np.where(side[:, None], np.stack([q[:, 0] / r, q[:, 1] / r, 0 * rho], 1), cap)
-    c, s = np.cos(p.yaw), np.sin(p.yaw)
-    Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-    ql = np.einsum("nc,cd->nd", q, Rz)  # into the box's frame; the face is where |q| / half size is largest
-    axis = np.abs(ql / p.size).argmax(1)
-    nl = np.zeros_like(ql)
-    nl[np.arange(len(ql)), axis] = np.sign(ql[np.arange(len(ql)), axis])
-    return np.einsum("nd,cd->nc", nl, Rz)
+        zero = np.zeros_like(r)
+        return np.where(side[:, None], np.stack([q[:, 0] / r, q[:, 1] / r, zero], 1),
+                        np.stack([zero, zero, np.sign(q[:, 2] - h / 2)], 1))
+    c, s = np.cos(yaw), np.sin(yaw)
+    lx, ly, lz = c * q[:, 0] + s * q[:, 1], -s * q[:, 0] + c * q[:, 1], q[:, 2]  # the box's frame
+    rx, ry, rz = np.abs(lx) / size[:, 0], np.abs(ly) / size[:, 1], np.abs(lz) / size[:, 2]
+    # The face is where |q| / half size is largest.
+    fx, fy = (rx >= ry) & (rx >= rz), (ry > rx) & (ry >= rz)
+    nx, ny = np.where(fx, np.sign(lx), 0.0), np.where(fy, np.sign(ly), 0.0)
+    return np.stack([c * nx - s * ny, s * nx + c * ny, np.where(fx | fy, 0.0, np.sign(lz))], 1)
 
 
 HIT = {"box": _t_box, "sphere": _t_sphere, "cylinder": _t_cylinder}
@@ -224,22 +226,17 @@ def _pixel_rect(p: Part, K, T, w, h):
 
 
 def _room(o, dx, dy, dz):
-    """Exit distance from inside the room box and the surface hit: 0 wall, 1 floor, 2 ceiling
-    (the class ids of CLASS_NAMES)."""
+    """Exit distance from inside the room box, the surface hit (0 wall, 1 floor, 2 ceiling:
+    the class ids of CLASS_NAMES) and its inward normal."""
     with np.errstate(divide="ignore"):
         tx, ty, tz = [np.where(d > 0, (ROOM_MAX[i] - o[i]) / d, (ROOM_MIN[i] - o[i]) / d)
                       for i, d in enumerate((dx, dy, dz))]
     t = np.minimum(np.minimum(tx, ty), tz)
-    surface = np.where(tz <= t, np.where(dz < 0, 1, 2), 0)
-    return t, surface
-
-
-def _room_normals(q):
-    dist = np.concatenate([q - ROOM_MIN, ROOM_MAX - q], 1)  # to the six faces
-    face = dist.argmin(1)
-    n = np.zeros_like(q)
-    n[np.arange(len(q)), face % 3] = np.where(face < 3, 1.0, -1.0)  # pointing into the room
-    return n
+    on_z, on_y = tz <= t, (ty <= t) & (tz > t)
+    surface = np.where(on_z, np.where(dz < 0, 1, 2), 0)
+    n = np.stack([np.where(on_z | on_y, 0.0, -np.sign(dx)), np.where(on_y, -np.sign(dy), 0.0),
+                  np.where(on_z, -np.sign(dz), 0.0)], -1)
+    return t, surface, n
 
 
 # --- materials --------------------------------------------------------------------------
@@ -268,7 +265,7 @@ class Textures:
         p, base = p.astype(np.float32), base.astype(np.float32)
         w = np.sin(np.einsum("nj,kj->nk", p, self.k) + self.phase)  # (N, n_waves) in [-1, 1]
         noise = 0.12 * np.einsum("nk,kc->nc", w, self.tint) / np.sqrt(len(self.phase))
-        shade = 1.0 + 0.25 * w[:, :3].mean(1, keepdims=True)
+        shade = 1.0 + (0.25 / 3) * (w[:, 0:1] + w[:, 1:2] + w[:, 2:3])
         m = kinds == KINDS.index("tiles")  # 0.5 m floor tiles with soft grout lines
         tile = np.tanh(12 * np.sin(np.pi * p[m, 0] / 0.5) * np.sin(np.pi * p[m, 1] / 0.5))
         shade[m] *= 1.0 + 0.15 * tile[:, None]
@@ -291,7 +288,7 @@ def render(parts: list, textures: Textures, K: np.ndarray, pose: np.ndarray, wid
     xc, yc = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
     R, o = pose[:3, :3], pose[:3, 3]
     dx, dy, dz = (R[i, 0] * xc + R[i, 1] * yc + R[i, 2] for i in range(3))
-    t, surface = _room(o, dx, dy, dz)
+    t, surface, normals = _room(o, dx, dy, dz)
     for k, p in enumerate(parts):
         rect = _pixel_rect(p, K, pose, width, height)
         if rect is None:
@@ -304,12 +301,17 @@ def render(parts: list, textures: Textures, K: np.ndarray, pose: np.ndarray, wid
     surface = surface.ravel()
     materials = ROOM_MATERIALS + [(p.colour, p.texture) for p in parts]
     base = np.array([m[0] for m in materials])[surface]
-    normals = np.empty_like(q)
-    room = surface < 3
-    normals[room] = _room_normals(q[room])
-    for k in np.unique(surface[~room]):
-        m = surface == k
-        normals[m] = _normals(parts[k - 3], q[m])
+    normals = normals.reshape(-1, 3)
+    centre = np.array([np.zeros(3)] * 3 + [p.centre for p in parts])
+    size = np.array([np.ones(3)] * 3 + [np.resize(p.size, 3) for p in parts])
+    yaw = np.array([0.0] * 3 + [p.yaw for p in parts])
+    shapes = list(HIT)
+    shape_of = np.array([-1] * 3 + [shapes.index(p.kind) for p in parts])[surface]
+    for code, kind in enumerate(shapes):
+        m = shape_of == code
+        if m.any():
+            s = surface[m]
+            normals[m] = _normals(kind, q[m], centre[s], size[s], yaw[s])
     kinds = np.array([KINDS.index(m[1]) for m in materials])[surface]
     albedo = textures.albedo(kinds, base, q)
     light = np.full(len(q), AMBIENT)
