@@ -129,16 +129,23 @@ def _noisy_pair(tmp_path, rng):
     return tmp_path / "gt.txt", tmp_path / "est.txt"
 
 
-@pytest.mark.parametrize("align", ["se3", "sim3"])
-def test_ate_matches_evo(tmp_path, align):
-    pytest.importorskip("evo", reason="evo (the reference for ATE) is not installed")
-    from evo.core import metrics, sync
+def _evo_pair(tmp_path, seed):
+    """Our files and evo's associated reading of them."""
+    pytest.importorskip("evo", reason="evo (the reference for ATE and RPE) is not installed")
+    from evo.core import sync
     from evo.tools import file_interface
 
-    gt_file, est_file = _noisy_pair(tmp_path, np.random.default_rng(3))
+    gt_file, est_file = _noisy_pair(tmp_path, np.random.default_rng(seed))
     ref = file_interface.read_tum_trajectory_file(str(gt_file))
     est = file_interface.read_tum_trajectory_file(str(est_file))
-    ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
+    return (gt_file, est_file, *sync.associate_trajectories(ref, est, max_diff=0.01))
+
+
+@pytest.mark.parametrize("align", ["se3", "sim3"])
+def test_ate_matches_evo(tmp_path, align):
+    gt_file, est_file, ref, est = _evo_pair(tmp_path, 3)
+    from evo.core import metrics
+
     est.align(ref, correct_scale=align == "sim3")
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
@@ -150,14 +157,9 @@ def test_ate_matches_evo(tmp_path, align):
 
 @pytest.mark.parametrize("all_pairs", [False, True])
 def test_rpe_matches_evo(tmp_path, all_pairs):
-    pytest.importorskip("evo", reason="evo (the reference for RPE) is not installed")
-    from evo.core import metrics, sync
-    from evo.tools import file_interface
+    gt_file, est_file, ref, est = _evo_pair(tmp_path, 4)
+    from evo.core import metrics
 
-    gt_file, est_file = _noisy_pair(tmp_path, np.random.default_rng(4))
-    ref = file_interface.read_tum_trajectory_file(str(gt_file))
-    est = file_interface.read_tum_trajectory_file(str(est_file))
-    ref, est = sync.associate_trajectories(ref, est, max_diff=0.01)
     ours = E.rpe(gt_file, est_file, delta=2, all_pairs=all_pairs)
     for relation, key in ((metrics.PoseRelation.translation_part, "trans"),
                           (metrics.PoseRelation.rotation_angle_deg, "rot")):

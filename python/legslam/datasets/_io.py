@@ -74,15 +74,16 @@ def read_numbers(path: Path, columns=None) -> np.ndarray:
         if not line:
             continue
         try:
-            rows.append([float(v) for v in line.split()])
+            row = [float(v) for v in line.split()]
         except ValueError:
             raise DatasetError(f"{path}:{n}: not a row of numbers: {line!r}") from None
+        widths = (len(rows[0]),) if rows else columns  # all rows as long as the first
+        if widths is not None and len(row) not in widths:
+            raise DatasetError(f"{path}:{n}: expected {' or '.join(map(str, widths))} numbers, "
+                               f"found {len(row)}: {line!r}")
+        rows.append(row)
     if not rows:
         raise DatasetError(f"{path} holds no numbers")
-    widths = {len(r) for r in rows}
-    if len(widths) != 1 or (columns is not None and widths.pop() not in columns):
-        raise DatasetError(f"{path}: expected rows of {' or '.join(map(str, columns or ['equal']))} "
-                           f"numbers, found row lengths {sorted({len(r) for r in rows})}")
     return np.array(rows)
 
 

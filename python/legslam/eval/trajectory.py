@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets._io import quat_to_pose
+from ..datasets._io import quat_to_pose, read_numbers
+from ..datasets.base import DatasetError, DatasetNotFoundError
 
 
 class TrajectoryError(ValueError):
@@ -18,24 +19,14 @@ class TrajectoryError(ValueError):
 
 def read_tum(path) -> tuple:
     """(timestamps (N,), c2w poses (N,4,4)) from a TUM file: `t tx ty tz qx qy qz qw` lines."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no trajectory file {path}")
-    rows = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
-        line = line.split("#", 1)[0].replace(",", " ").strip()
-        if not line:
-            continue
-        try:
-            vals = [float(v) for v in line.split()]
-        except ValueError:
-            vals = []
-        if len(vals) != 8 or not np.all(np.isfinite(vals)):
-            raise TrajectoryError(f"{path}:{n}: expected 8 finite numbers (t tx ty tz qx qy qz qw): {line!r}")
-        rows.append(vals)
-    if not rows:
-        raise TrajectoryError(f"{path} holds no poses")
-    rows = np.array(rows)
+    try:
+        rows = read_numbers(path, columns=(8,))
+    except DatasetNotFoundError:
+        raise FileNotFoundError(f"no trajectory file {path}") from None
+    except DatasetError as e:
+        raise TrajectoryError(f"{e} (a TUM trajectory has lines t tx ty tz qx qy qz qw)") from None
+    if not np.all(np.isfinite(rows)):
+        raise TrajectoryError(f"{path} has non-finite values")
     return rows[:, 0], np.stack([quat_to_pose(r[1:4], r[4:8]) for r in rows])
 
 
