@@ -124,7 +124,9 @@ class Sequence:
     def _setup(self, K, depth_scale: float, size: tuple):
         """Fix the camera after the format found its files. size is the native (width, height)."""
         K = self._K_override if self._K_override is not None else as_K(K)
-        depth_scale = float(self._depth_scale_override or depth_scale)
+        if self._depth_scale_override is not None:
+            depth_scale = self._depth_scale_override
+        depth_scale = float(depth_scale)
         if not (np.isfinite(depth_scale) and depth_scale > 0):
             raise DatasetError(f"{self.path}: depth scale must be a positive number, got {depth_scale}")
         self.depth_scale = depth_scale
@@ -150,10 +152,11 @@ class Sequence:
         self.width, self.height = w // f, h // f
 
         n = self._count()
-        start, stop = (0, n) if self._frames is None else self._frames
+        start, stop = (0, n) if self._frames is None else tuple(self._frames)
         stop = n if stop is None else min(stop, n)
-        if not (isinstance(self._stride, (int, np.integer)) and self._stride >= 1):
-            raise DatasetError(f"stride must be an integer >= 1, got {self._stride!r}")
+        for name, v in (("stride", self._stride), ("max_frames", self._max_frames)):
+            if not (isinstance(v, (int, np.integer)) and v >= 1) and not (name == "max_frames" and v is None):
+                raise DatasetError(f"{name} must be an integer >= 1, got {v!r}")
         if not 0 <= start < stop:
             raise DatasetError(f"frames=({start}, {stop}) is not a range inside the {n} frames of {self.path}")
         self._indices = range(start, stop, self._stride)[: self._max_frames]
