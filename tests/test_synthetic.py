@@ -106,6 +106,7 @@ def test_default_scene_is_generated_once_and_cached(tmp_path, monkeypatch):
     monkeypatch.setenv("LEGSLAM_CACHE", str(tmp_path))
     p = S.default_scene(n_frames=2, width=32, height=24)
     assert p.parent.parent == tmp_path and (p / "scene.json").is_file()
+    assert all((f.depth > 0).all() for f in D.open(p))
     stamp = os.stat(p / "color" / "000000.png").st_mtime_ns
     assert S.default_scene(n_frames=2, width=32, height=24) == p
     assert os.stat(p / "color" / "000000.png").st_mtime_ns == stamp
