@@ -112,3 +112,13 @@ def test_default_scene_is_generated_once_and_cached(tmp_path, monkeypatch):
     assert os.stat(p / "color" / "000000.png").st_mtime_ns == stamp
     assert [q.name for q in p.parent.iterdir()] == [p.name]  # no temporary folder left behind
     assert S.default_scene(n_frames=3, width=32, height=24) != p  # other parameters, other scene
+
+
+def test_generate_replaces_an_old_scene_but_not_other_files(tmp_path):
+    S.generate(tmp_path / "scene", n_frames=3, width=32, height=24)
+    S.generate(tmp_path / "scene", n_frames=2, width=32, height=24)
+    assert len(D.open(tmp_path / "scene")) == 2
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    with pytest.raises(FileExistsError, match="not empty"):
+        S.generate(tmp_path / "mine", n_frames=2, width=32, height=24)

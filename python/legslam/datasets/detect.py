@@ -32,7 +32,7 @@ def detect(path: Path) -> str:
             return name
     looked = "\n".join(f"  {name}: {what}" for name, (_, _, what) in FORMATS.items())
     hint = ""
-    subdirs = sorted(d for d in path.iterdir() if d.is_dir())
+    subdirs = sorted(d for d in path.iterdir() if d.is_dir())[:100]  # a hint, not a search
     found = [(d.name, n) for d in subdirs for n, (_, m, _) in FORMATS.items() if m(d)]
     if found:
         hint = "\nbut these sub-folders match: " + ", ".join(f"{d} ({n})" for d, n in found[:5])

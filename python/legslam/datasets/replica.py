@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ._io import read_depth, read_intrinsics, read_numbers, read_rgb
-from .base import DatasetError, DatasetNotFoundError, Sequence, check_pose, make_K, paths_sorted
+from .base import NOMINAL_FPS, DatasetError, DatasetNotFoundError, Sequence, check_pose, make_K, paths_sorted
 
 DEPTH_SCALE = 6553.5
 STANDARD_SIZE = (1200, 680)
@@ -66,6 +66,9 @@ class ReplicaSequence(Sequence):
 
     def _read(self, i):
         return read_rgb(self._rgb[i]), read_depth(self._depth[i]), None
+
+    def _timestamp(self, i):
+        return self._numbers[i] / NOMINAL_FPS
 
     def _pose(self, i):
         n = self._numbers[i]

@@ -343,13 +343,19 @@ def _write_png(path: Path, img: np.ndarray) -> None:
 
 
 def generate(out_dir, n_frames: int = 100, width: int = 320, height: int = 240, seed: int = 0) -> Path:
-    """Render the scene into out_dir (created; existing files of the same names are replaced)
-    and return its path, ready for legslam.datasets.open."""
+    """Render the scene into out_dir and return its path, ready for legslam.datasets.open.
+    out_dir must be empty, new, or an earlier generated scene (which is replaced)."""
     from ..eval.trajectory import write_tum
 
     if n_frames < 1 or width < 16 or height < 16:
         raise ValueError(f"need n_frames >= 1 and images of at least 16x16, got {n_frames}, {width}x{height}")
     out = Path(out_dir)
+    if out.is_dir() and any(out.iterdir()):
+        if not (out / "scene.json").is_file():
+            raise FileExistsError(f"{out} is not empty and holds no generated scene; not writing into it")
+        (out / "scene.json").unlink()  # first, so an interrupted rewrite is not taken as complete
+        for sub in ("color", "depth", "labels"):
+            shutil.rmtree(out / sub, ignore_errors=True)
     for sub in ("color", "depth", "labels"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
