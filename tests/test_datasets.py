@@ -358,3 +358,16 @@ def test_label_outside_classes_is_an_error(folder_dir):
     cv2.imwrite(str(p / "labels" / "0.png"), np.full((H, W), 7, np.uint8))
     with pytest.raises(DatasetError, match="classes.txt"):
         D.open(p)[0]
+
+
+def test_tum_without_a_known_camera_warns(tum_dir):
+    p, _ = tum_dir
+    q = p.rename(p.parent / "my_recording")
+    with pytest.warns(UserWarning, match="default camera"):
+        seq = D.open(q)
+    np.testing.assert_allclose(seq.K[0], [525, 0, 319.5])
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        D.open(q, intrinsics=(500, 500, 16, 12))  # given intrinsics: nothing to warn about

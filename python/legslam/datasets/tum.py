@@ -9,6 +9,7 @@ to the same pinhole K (colour bilinear, depth nearest) so the engine sees a pinh
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -57,8 +58,9 @@ def associate(a: np.ndarray, b: np.ndarray, max_diff: float) -> list:
     order = np.argsort(a)
     b_sorted = np.argsort(b)
     cands = []
-    for i in order:  # only the two neighbours in sorted b can be the closest
-        k = np.searchsorted(b[b_sorted], a[i])
+    bs = b[b_sorted]
+    for i in order:  # only the neighbours in sorted b can be the closest
+        k = np.searchsorted(bs, a[i])
         for kk in (k - 1, k, k + 1):
             if 0 <= kk < len(b):
                 j = b_sorted[kk]
@@ -76,10 +78,13 @@ def associate(a: np.ndarray, b: np.ndarray, max_diff: float) -> list:
 
 
 def camera_for(path: Path) -> tuple:
+    """The calibration of the camera named in the sequence's path (freiburg1/2/3)."""
     name = str(path.resolve()).lower()
     for key, cam in CAMERAS.items():
         if key in name:
             return cam
+    warnings.warn(f"{path}: no freiburg1/2/3 in the path, so TUM's default camera (fx = fy = 525, no "
+                  "distortion) is assumed; pass intrinsics=(fx, fy, cx, cy) if that is wrong", stacklevel=4)
     return DEFAULT_CAMERA
 
 
