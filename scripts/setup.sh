@@ -9,7 +9,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet maturin numpy onnxruntime opencv-python-headless \
-  pytest scikit-image onnx
+  pytest scikit-image onnx evo
 # Release build of the Rust engine, installed (editable) into .venv.
 VIRTUAL_ENV="$PWD/.venv" .venv/bin/maturin develop --release --quiet
 echo "legslam is set up in $PWD/.venv (activate with: source .venv/bin/activate)"

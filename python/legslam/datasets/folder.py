@@ -1,0 +1,121 @@
+"""A plain folder of colour and depth images: legslam's own format, and the way in for data
+that comes in no published layout.
+
+    color/ (or colour/, rgb/, image/, images/)   N.png / N.jpg
+    depth/                                       N.png (16-bit, divided by the depth scale) or
+                                                 N.tif / N.exr / N.npy (float metres)
+    camera.json, cam_params.json, intrinsics.json, intrinsics.txt, camera-intrinsics.txt or K.txt
+    poses.txt, pose.txt, groundtruth.txt or traj.txt    optional, line i = frame i: 7 numbers
+                   (tx ty tz qx qy qz qw), 8 (TUM, with a timestamp) or 16 (row-major 4x4 c2w)
+    labels/ (or label/) N.png and classes.txt    optional: class ids, line k of classes.txt
+                   names id k; 255 (8-bit) or 65535 (16-bit) marks unlabelled pixels
+
+Colour and depth pair up by file name (without extension), in natural order. The JSON camera
+may carry "depth_scale" (default 1000, millimetres); open(..., intrinsics=, depth_scale=)
+supplies or overrides either. A negative focal length (ICL-NUIM's fy = -480) is handled by the
+sequence: the image is flipped and the focal length negated, poses unchanged.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ._io import poses_from_rows, read_depth, read_intrinsics, read_labels, read_numbers, read_rgb
+from .base import IGNORE_LABEL, NOMINAL_FPS, DatasetError, DatasetNotFoundError, Sequence, check_pose, paths_sorted
+
+COLOUR_DIRS = ("color", "colour", "rgb", "image", "images")
+DEPTH_DIRS = ("depth",)
+LABEL_DIRS = ("labels", "label")
+CAMERA_FILES = ("camera.json", "cam_params.json", "intrinsics.json", "intrinsics.txt",
+                "camera-intrinsics.txt", "K.txt")
+POSE_FILES = ("poses.txt", "pose.txt", "groundtruth.txt", "traj.txt")
+COLOUR_EXTS = (".png", ".jpg", ".jpeg")
+DEPTH_EXTS = (".png", ".tif", ".tiff", ".exr", ".npy")
+DEFAULT_DEPTH_SCALE = 1000.0
+
+
+def _first_dir(path: Path, names) -> Path | None:
+    return next((path / n for n in names if (path / n).is_dir()), None)
+
+
+def is_folder(path: Path) -> bool:
+    return _first_dir(path, COLOUR_DIRS) is not None and _first_dir(path, DEPTH_DIRS) is not None
+
+
+def _images(folder: Path, exts) -> dict:
+    return {f.stem: f for f in paths_sorted([f for f in folder.iterdir() if f.suffix.lower() in exts])}
+
+
+class FolderSequence(Sequence):
+    format = "folder"
+
+    def __init__(self, path, **kw):
+        super().__init__(path, **kw)
+        p = self.path
+        self.name = p.name
+        cdir, ddir = _first_dir(p, COLOUR_DIRS), _first_dir(p, DEPTH_DIRS)
+        if cdir is None or ddir is None:
+            raise DatasetNotFoundError(f"{p}: a folder dataset needs a colour folder ({', '.join(COLOUR_DIRS)}) "
+                                       f"and a depth folder ({', '.join(DEPTH_DIRS)})")
+        colour, depth = _images(cdir, COLOUR_EXTS), _images(ddir, DEPTH_EXTS)
+        if not colour:
+            raise DatasetNotFoundError(f"{cdir}: no {'/'.join(COLOUR_EXTS)} images")
+        unpaired = sorted(set(colour) ^ set(depth))
+        if unpaired:
+            raise DatasetError(f"{p}: colour and depth images do not pair up by name; unpaired: "
+                               f"{', '.join(unpaired[:5])}{' ...' if len(unpaired) > 5 else ''}")
+        self._stems = list(colour)
+        self._rgb, self._depth = list(colour.values()), [depth[s] for s in self._stems]
+        n = len(self._stems)
+
+        self._labels = None
+        ldir = _first_dir(p, LABEL_DIRS)
+        if ldir is not None:
+            labels = _images(ldir, (".png",))
+            missing = [s for s in self._stems if s not in labels]
+            if missing:
+                raise DatasetNotFoundError(f"{ldir}: no label image for {', '.join(missing[:5])}")
+            self._labels = [labels[s] for s in self._stems]
+            if (p / "classes.txt").is_file():
+                self.class_names = [ln.strip() for ln in (p / "classes.txt").read_text().splitlines() if ln.strip()]
+
+        self._poses, self._stamps = [None] * n, None
+        pose_file = next((p / f for f in POSE_FILES if (p / f).is_file()), None)
+        if pose_file is not None:
+            stamps, poses = poses_from_rows(read_numbers(pose_file, columns=(7, 8, 16)), pose_file)
+            if len(poses) != n:
+                raise DatasetError(f"{pose_file} has {len(poses)} poses for {n} frames (line i must be frame i)")
+            self._poses = [check_pose(T, f"{pose_file} line {k + 1}") for k, T in enumerate(poses)]
+            self._stamps = stamps
+
+        cam = next((p / f for f in CAMERA_FILES if (p / f).is_file()), None)
+        K, scale = None, None
+        if cam is not None:
+            K, scale, _ = read_intrinsics(cam)
+        elif self._K_override is None:
+            raise DatasetNotFoundError(f"{p}: no camera file (looked for {', '.join(CAMERA_FILES)}); "
+                                       "add one or pass intrinsics=(fx, fy, cx, cy)")
+        h, w = read_rgb(self._rgb[0]).shape[:2]
+        self._setup(K if K is not None else self._K_override, scale or DEFAULT_DEPTH_SCALE, (w, h))
+
+    def _count(self):
+        return len(self._stems)
+
+    def _read(self, i):
+        labels = None
+        if self._labels is not None:
+            raw = read_labels(self._labels[i])
+            labels = raw.astype(np.int32)
+            labels[raw == np.iinfo(raw.dtype).max] = IGNORE_LABEL
+            if self.class_names is not None and labels.max() >= len(self.class_names):
+                raise DatasetError(f"{self._labels[i]}: label {labels.max()} but classes.txt names "
+                                   f"only {len(self.class_names)} classes")
+        return read_rgb(self._rgb[i]), read_depth(self._depth[i]), labels
+
+    def _pose(self, i):
+        return self._poses[i]
+
+    def _timestamp(self, i):
+        return self._stamps[i] if self._stamps is not None else i / NOMINAL_FPS
