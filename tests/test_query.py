@@ -89,6 +89,18 @@ def test_text_queries_pipeline(tmp_path):
         query.text_queries([], enc)
 
 
+def test_fit_text_pca_on_perturbed_label_embeddings(tmp_path):
+    enc = TextEncoder(make_text_encoder(tmp_path / "t.onnx"))
+    labels = ["chair", "sky", "plant", "table", "lamp"]
+    pca = query.fit_text_pca(labels, enc, n_components=4, copies=10, min_cos=0.95)
+    assert pca.n_samples == 5 * 11 and pca.components.shape == (4, 8)
+    # The label embeddings themselves are well represented by the fitted components.
+    emb = query.text_queries(labels, enc)
+    restored = pca.inverse_transform(pca.transform(emb))
+    cos = (restored * emb).sum(1) / np.linalg.norm(restored, axis=1)
+    assert cos.min() > 0.9
+
+
 def test_overlay_and_png(tmp_path):
     rgb = np.random.default_rng(0).integers(0, 256, (12, 16, 3), dtype=np.uint8)
     heat = np.linspace(-1, 1, 12 * 16, dtype=np.float32).reshape(12, 16)

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from legslam.features.encoder import l2_normalize
+from legslam.features.pca import PCA
 from legslam.features.text import TEMPLATES
 
 
@@ -103,6 +104,21 @@ def text_queries(labels, text_encoder, projection=None, pca=None, templates=TEMP
     if pca is not None:
         emb = pca.transform(emb)
     return l2_normalize(emb)
+
+
+def fit_text_pca(
+    labels, text_encoder, projection=None, n_components: int = 64, copies: int = 32, min_cos: float = 0.95, seed: int = 0
+) -> PCA:
+    """The paper's PCA: fitted on the (projected) text embeddings of a label list, each with
+    `copies` random perturbations whose cosine to it is uniform in [min_cos, 1]."""
+    emb = text_queries(labels, text_encoder, projection).astype(np.float64)  # [C, D], unit
+    rng = np.random.default_rng(seed)
+    noise = rng.standard_normal((len(emb), copies, emb.shape[1]))
+    noise -= (noise @ emb[:, :, None]) * emb[:, None, :]  # orthogonal to each embedding
+    noise /= np.linalg.norm(noise, axis=2, keepdims=True)
+    angle = rng.uniform(0, np.arccos(min_cos), (len(emb), copies, 1))
+    samples = np.cos(angle) * emb[:, None, :] + np.sin(angle) * noise  # unit, cos = cos(angle)
+    return PCA(n_components).fit(np.concatenate([emb, samples.reshape(-1, emb.shape[1])]))
 
 
 def overlay(rgb, heat, alpha: float = 0.5, vmin: float | None = None, vmax: float | None = None, where=None):
