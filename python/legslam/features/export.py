@@ -14,7 +14,6 @@ export because DINOv2's position-embedding interpolation is traced with constant
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -53,8 +52,9 @@ def run(args) -> int:
     return 0
 
 
-def _export(module, example, path: Path, input_name: str, output_name: str, meta: dict) -> float:
-    """torch.onnx.export with a dynamic batch; returns max |onnxruntime - torch| on `example`."""
+def _export(model, forward, example, out: Path, filename: str, io: tuple, meta: dict, **info) -> None:
+    """torch.onnx.export of `forward(model, x)` with a dynamic batch into out/filename, checked
+    against torch with onnxruntime on `example`, and recorded in out/manifest.json."""
     import inspect
 
     import onnx
@@ -62,7 +62,17 @@ def _export(module, example, path: Path, input_name: str, output_name: str, meta
 
     from legslam.features.encoder import session
 
-    tmp = path.with_suffix(".partial")
+    class Forward(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.model = model
+
+        def forward(self, x):
+            return forward(self.model, x)
+
+    module = Forward().eval()
+    input_name, output_name = io
+    tmp = out / (filename + ".partial")
     # The TorchScript exporter (dynamo=False): dynamic_axes is its API; older torch lacks the flag.
     legacy = {"dynamo": False} if "dynamo" in inspect.signature(torch.onnx.export).parameters else {}
     torch.onnx.export(
@@ -75,43 +85,34 @@ def _export(module, example, path: Path, input_name: str, output_name: str, meta
         opset_version=OPSET,
         **legacy,
     )
-    model = onnx.load(str(tmp))
-    onnx.helper.set_model_props(model, meta)
-    onnx.save(model, str(tmp))
+    onnx_model = onnx.load(str(tmp))
+    onnx.helper.set_model_props(onnx_model, meta)
+    onnx.save(onnx_model, str(tmp))
     expected = module(example).numpy()
     got = session(tmp, None).run([output_name], {input_name: example.numpy()})[0]
-    tmp.replace(path)
-    return float(np.abs(got - expected).max())
+    err = float(np.abs(got - expected).max())
+    tmp.replace(out / filename)
+    models.record_in_manifest(out, filename, torch_version=torch.__version__, max_abs_diff_vs_torch=err, **info)
+    print(f"{filename}: max |onnxruntime - torch| = {err:.2e}")
 
 
 def export_dinov2(out: Path, input_size: int) -> None:
     import torch
 
-    t0 = time.perf_counter()
     print("loading dinov2_vitb14_reg from torch.hub ...")
     dino = torch.hub.load("facebookresearch/dinov2", "dinov2_vitb14_reg").eval()
-
-    class PatchTokens(torch.nn.Module):
-        def __init__(self, m):
-            super().__init__()
-            self.m = m
-
-        def forward(self, x):
-            return self.m.forward_features(x)["x_norm_patchtokens"]
-
-    example = torch.randn(1, 3, input_size, input_size)
-    meta = {"patch_size": "14", "legslam_model": "dinov2_vitb14_reg"}
-    err = _export(PatchTokens(dino).eval(), example, out / "dinov2_vitb14_reg.onnx", "input_image", "x_norm_patchtokens", meta)
-    models.record_in_manifest(
+    _export(
+        dino,
+        lambda m, x: m.forward_features(x)["x_norm_patchtokens"],
+        torch.randn(1, 3, input_size, input_size),
         out,
         "dinov2_vitb14_reg.onnx",
+        ("input_image", "x_norm_patchtokens"),
+        {"patch_size": "14", "legslam_model": "dinov2_vitb14_reg"},
         source="torch.hub facebookresearch/dinov2 dinov2_vitb14_reg (Apache-2.0)",
         input=f"input_image float32 [B,3,{input_size},{input_size}], ImageNet-normalised RGB",
         output=f"x_norm_patchtokens float32 [B,{(input_size // 14) ** 2},768]",
-        torch_version=torch.__version__,
-        max_abs_diff_vs_torch=err,
     )
-    print(f"dinov2_vitb14_reg.onnx: max |ort - torch| = {err:.2e} ({time.perf_counter() - t0:.0f} s)")
 
 
 def export_clip_text(out: Path) -> None:
@@ -120,30 +121,19 @@ def export_clip_text(out: Path) -> None:
 
     from legslam.features.tokenizer import tokenize
 
-    t0 = time.perf_counter()
     print("loading OpenAI CLIP ViT-B/16 with open_clip ...")
     clip = open_clip.create_model("ViT-B-16", pretrained="openai").eval()
-
-    class TextTower(torch.nn.Module):
-        def __init__(self, m):
-            super().__init__()
-            self.m = m
-
-        def forward(self, ids):
-            # Raw features at the <|endoftext|> token (argmax id): what Talk2DINO was trained on.
-            return self.m.encode_text(ids, normalize=False)
-
-    example = torch.from_numpy(tokenize(["a photo of a chair.", "a plant"]))
-    meta = {"legslam_model": "clip_vitb16_text", "context_length": "77"}
-    err = _export(TextTower(clip).eval(), example, out / "clip_vitb16_text.onnx", "input_ids", "text_embeds", meta)
-    models.record_in_manifest(
+    _export(
+        clip,
+        # Raw features at the <|endoftext|> token (argmax id): what Talk2DINO was trained on.
+        lambda m, ids: m.encode_text(ids, normalize=False),
+        torch.from_numpy(tokenize(["a photo of a chair.", "a plant"])),
         out,
         "clip_vitb16_text.onnx",
+        ("input_ids", "text_embeds"),
+        {"legslam_model": "clip_vitb16_text", "context_length": "77"},
         source="open_clip ViT-B-16 pretrained=openai (OpenAI CLIP, MIT): text tower",
         input="input_ids int64 [B,77], CLIP BPE token ids (legslam.features.tokenize)",
         output="text_embeds float32 [B,512], raw (not normalised) text features",
-        torch_version=torch.__version__,
         open_clip_version=open_clip.__version__,
-        max_abs_diff_vs_torch=err,
     )
-    print(f"clip_vitb16_text.onnx: max |ort - torch| = {err:.2e} ({time.perf_counter() - t0:.0f} s)")
