@@ -61,3 +61,4 @@ def test_pre_split_follows_the_clip_pattern():
     assert _pre_split("it's 42½ x²!?") == ["it", "'s", "4", "2", "½", "x", "²", "!?"]
     assert _pre_split("naïve<|endoftext|>") == ["naïve", "<|endoftext|>"]
     assert _pre_split("!'s") == ["!'", "s"]
+    assert _pre_split("a\x1cb") == ["a", "\x1c", "b"]  # not White_Space, unlike str.isspace()
