@@ -6,12 +6,16 @@ the remaining frames, the mean cosine similarity between each feature and its co
 restored version, for each K (the paper's Table: 0.957-0.988 at K=64 for ViT-B/14 at 518).
 Also the per-frame costs: extraction, PCA compression, feature-target upsampling.
 
-    .venv/bin/python benches/bench_pca.py [--frames 40] [--input-size 224] [--threads 2]
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benches/bench_pca.py [--frames 40] [--input-size 224] [--threads 2]
+
+Without OPENBLAS_NUM_THREADS=1, numpy's BLAS thread pool competes with onnxruntime's on a
+2-core machine and the 0.5 ms compression takes 8-16 ms.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -54,7 +58,8 @@ def main() -> int:
 
     print(f"model {enc.path.name}, input {enc.input_size[0]}x{enc.input_size[1]} -> {h}x{w}x{d} patches; "
           f"{len(picks)} frames of {args.data.parent.name}: PCA fitted on {len(fit)} patches "
-          f"(every other frame), evaluated on {len(test)} patches of the other frames\n")
+          f"(every other frame), evaluated on {len(test)} patches of the other frames; "
+          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}\n")
     print("| K | mean cos(restored, original) | min | 5th percentile |")
     print("| ---: | ---: | ---: | ---: |")
     full = PCA(max(KS)).fit(fit)

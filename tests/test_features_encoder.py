@@ -115,7 +115,8 @@ def test_real_encoder_is_stable_across_nearby_frames_and_sizes(real_encoder):
     a, b = real_encoder.encode(_real_frame(0)), real_encoder.encode(_real_frame(2))
     same_patch = (a * b).sum(-1).mean()
     shuffled = (a * b.reshape(-1, 384)[::-1].reshape(a.shape)).sum(-1).mean()
-    assert same_patch > 0.7 and same_patch > shuffled + 0.2, (same_patch, shuffled)
+    # DINOv2 patch features share a large common component: random pairs score ~0.75 here.
+    assert same_patch > 0.95 and same_patch > shuffled + 0.1, (same_patch, shuffled)
     # The cut graph interpolates its position embeddings: other multiples of 14 work.
     big = Encoder("default", input_size=280).encode(_real_frame(0))
     assert big.shape == (20, 20, 384)
