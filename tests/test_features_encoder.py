@@ -49,11 +49,13 @@ def test_fixed_size_model_overrides_input_size(tmp_path):
     assert enc.encode(_frame(100, 100)).shape == (2, 4, 8)
 
 
-def test_batch_equals_single_frames(tmp_path):
-    enc = Encoder(make_encoder(tmp_path / "e.onnx"), input_size=42)
+@pytest.mark.parametrize("batch", ["batch", 1])
+def test_batch_equals_single_frames(tmp_path, batch):
+    enc = Encoder(make_encoder(tmp_path / "e.onnx", batch=batch), input_size=42)
     frames = [_frame(60, 80, s) for s in range(3)]
-    batch = enc.encode_batch(frames)
-    for f, one in zip(frames, batch):
+    out = enc.encode_batch(frames)  # a model with a fixed batch of 1 runs frame by frame
+    assert out.shape == (3, 3, 3, 8)
+    for f, one in zip(frames, out):
         np.testing.assert_allclose(enc.encode(f), one, rtol=1e-5, atol=1e-6)
 
 

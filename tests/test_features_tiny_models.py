@@ -34,13 +34,13 @@ def encoder_weights(dim: int = 8, seed: int = 0):
     )
 
 
-def make_encoder(path: Path, dim: int = 8, size: tuple | None = None, layout: str = "tokens") -> Path:
+def make_encoder(path: Path, dim: int = 8, size: tuple | None = None, layout: str = "tokens", batch="batch") -> Path:
     """A ViT stand-in: a stride-14 patch projection (Conv). Input `input_image` [B,3,H,W]
-    (H, W symbolic unless `size`), output `x_norm_patchtokens` [B,N,D] ("tokens") or
-    [B,h,w,D] ("grid")."""
+    (H, W symbolic unless `size`; B symbolic unless `batch` is an int), output
+    `x_norm_patchtokens` [B,N,D] ("tokens") or [B,h,w,D] ("grid")."""
     w, b = encoder_weights(dim)
     hw = list(size) if size else ["height", "width"]
-    inp = helper.make_tensor_value_info("input_image", TensorProto.FLOAT, ["batch", 3, *hw])
+    inp = helper.make_tensor_value_info("input_image", TensorProto.FLOAT, [batch, 3, *hw])
     nodes = [helper.make_node("Conv", ["input_image", "w", "b"], ["conv"], kernel_shape=[PATCH, PATCH], strides=[PATCH, PATCH])]
     if layout == "tokens":
         nodes += [
