@@ -89,9 +89,9 @@ class Encoder:
         """A list of uint8 RGB frames -> [B, h, w, D] float32, L2-normalised per patch."""
         if not len(frames):
             raise ValueError("encode_batch needs at least one frame")
-        x = np.stack([self.preprocess(f) for f in frames])
-        if self.batch_fixed and x.shape[0] != 1:
+        if self.batch_fixed and len(frames) != 1:
             return np.concatenate([self.encode_batch([f]) for f in frames])
+        x = np.stack([self.preprocess(f) for f in frames])
         y = self.session.run([OUTPUT_NAME], {INPUT_NAME: x})[0]
         h, w = self.grid
         if y.ndim == 3 and y.shape[1] == h * w:
