@@ -19,6 +19,8 @@ pub(crate) struct Splat {
     pub color: V3,
     /// Half extents (x, y) in pixels of the region where alpha can reach `alpha_min`.
     pub ext: V2,
+    /// ln(opacity / alpha_min): where sigma exceeds it, alpha is below the cut-off.
+    pub sigma_max: Real,
 }
 
 impl Splat {
@@ -61,7 +63,9 @@ pub(crate) fn alpha_at(s: &Splat, px: Real, py: Real, cfg: &RasterConfig) -> Opt
     let dx = px - s.xy.x;
     let dy = py - s.xy.y;
     let sigma = 0.5 * (s.conic.x * dx * dx + s.conic.z * dy * dy) + s.conic.y * dx * dy;
-    if sigma < 0.0 {
+    // Beyond the cut-off ellipse (the bulk of a Gaussian's bounding box) skip the exp; the
+    // margin leaves the exact decision on the ellipse's rim to the alpha test below.
+    if sigma < 0.0 || sigma > s.sigma_max + 1e-3 {
         return None;
     }
     let falloff = (-sigma).exp();
@@ -151,6 +155,7 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
                 depth: geo.p_cam.z,
                 color,
                 ext,
+                sigma_max: (opacity / cfg.alpha_min).ln(),
             };
             (splat, r, ext.x.max(ext.y))
         })
