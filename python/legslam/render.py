@@ -21,8 +21,8 @@ __all__ = ["render", "Render"]
 def _floats(name: str, a, shape: tuple) -> np.ndarray:
     """`a` as a C-contiguous float32 array of `shape` (None = any size), or ValueError."""
     a = np.asarray(a)
-    if a.dtype.kind != "f":
-        raise ValueError(f"{name} must be a floating-point array, got dtype {a.dtype}")
+    if a.dtype.kind not in "fiu":
+        raise ValueError(f"{name} must be a numeric (real) array, got dtype {a.dtype}")
     if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
         want = "x".join("N" if s is None else str(s) for s in shape)
         raise ValueError(f"{name} must have shape {want}, got {a.shape}")
