@@ -48,3 +48,64 @@ impl Intrinsics {
         }
     }
 }
+
+/// A 4x4 row-major rigid transform.
+pub type Pose = [[f64; 4]; 4];
+
+/// Inverse of a rigid transform [R t; 0 1]: [R^T -R^T t; 0 1].
+pub fn invert_rigid(m: &Pose) -> Pose {
+    let mut out = [[0.0; 4]; 4];
+    for i in 0..3 {
+        for j in 0..3 {
+            out[i][j] = m[j][i];
+        }
+        out[i][3] = -(0..3).map(|j| m[j][i] * m[j][3]).sum::<f64>();
+    }
+    out[3][3] = 1.0;
+    out
+}
+
+/// Applies a rigid transform to a point.
+pub fn transform_point(m: &Pose, p: [f64; 3]) -> [f64; 3] {
+    let mut out = [0.0; 3];
+    for (i, o) in out.iter_mut().enumerate() {
+        *o = m[i][0] * p[0] + m[i][1] * p[1] + m[i][2] * p[2] + m[i][3];
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rigid_inverse_round_trips_points() {
+        let (c, s) = (0.3f64.cos(), 0.3f64.sin());
+        let m = [
+            [c, -s, 0.0, 1.0],
+            [s, c, 0.0, -2.0],
+            [0.0, 0.0, 1.0, 0.5],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        let p = [0.2, -0.7, 3.0];
+        let q = transform_point(&invert_rigid(&m), transform_point(&m, p));
+        for i in 0..3 {
+            assert!((p[i] - q[i]).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn half_scale_keeps_pixel_centres_aligned() {
+        let k = Intrinsics {
+            fx: 500.0,
+            fy: 500.0,
+            cx: 319.5,
+            cy: 239.5,
+            width: 640,
+            height: 480,
+        };
+        let h = k.scaled(0.5);
+        assert_eq!((h.width, h.height), (320, 240));
+        assert!((h.cx - 159.5).abs() < 1e-12 && (h.fx - 250.0).abs() < 1e-12);
+    }
+}

@@ -2,10 +2,13 @@
 //!
 //! - [`raster`]: the differentiable Gaussian rasterizer (forward and hand-written backward).
 //! - [`camera`]: pinhole intrinsics and rigid poses shared by the rasterizer and the tracker.
+//! - [`map`]: the Gaussian map and how it grows, is pruned, densified and trained.
 //! - [`track`]: dense RGB-D pose tracking.
 
 pub mod camera;
+pub mod map;
 pub mod raster;
+pub mod rng;
 pub mod track;
 
 /// The engine's scalar type: `f32` in every build users run, `f64` under the `f64` feature so

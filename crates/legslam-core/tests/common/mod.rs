@@ -6,27 +6,7 @@ use legslam_core::raster::{sh, Camera, Gaussians, RasterConfig};
 use legslam_core::Real;
 use nalgebra::{Matrix2, Matrix3, Quaternion, Rotation3, UnitQuaternion, Vector3};
 
-/// Small deterministic generator (xorshift), so tests need no extra crate.
-pub struct Rng(u64);
-
-impl Rng {
-    pub fn new(seed: u64) -> Self {
-        Rng(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1)
-    }
-    pub fn next_f64(&mut self) -> f64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        (self.0 >> 11) as f64 / (1u64 << 53) as f64
-    }
-    pub fn uniform(&mut self, a: f64, b: f64) -> f64 {
-        a + (b - a) * self.next_f64()
-    }
-    pub fn normal(&mut self) -> f64 {
-        let (u, v) = (self.next_f64().max(1e-12), self.next_f64());
-        (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
-    }
-}
+pub use legslam_core::rng::Rng;
 
 #[derive(Clone, Debug)]
 pub struct Scene {

@@ -1,0 +1,133 @@
+//! Densification by gradient (3DGS): Gaussians whose projected centres keep receiving large
+//! gradients are under-reconstructing; small ones are cloned, large ones split in two.
+
+use super::store::GaussianMap;
+use crate::raster::math::{quat_to_mat, V3};
+use crate::rng::Rng;
+use crate::Real;
+
+#[derive(Clone, Copy, Debug)]
+pub struct DensifyConfig {
+    /// Densify every this many mapping iterations (0 disables).
+    pub interval: usize,
+    /// Mean norm of d(loss)/d(projected centre, pixels) above which a Gaussian densifies.
+    pub grad_threshold: Real,
+    /// Gaussians larger than this fraction of the scene extent are split, smaller cloned.
+    pub split_scale: Real,
+    /// Never grow the map beyond this many Gaussians.
+    pub max_gaussians: usize,
+}
+
+impl Default for DensifyConfig {
+    fn default() -> Self {
+        DensifyConfig {
+            interval: 100,
+            grad_threshold: 2e-4,
+            split_scale: 0.01,
+            max_gaussians: 300_000,
+        }
+    }
+}
+
+/// Per-Gaussian accumulated gradient norms between densifications.
+#[derive(Clone, Debug, Default)]
+pub struct GradStats {
+    pub sum: Vec<Real>,
+    pub count: Vec<u32>,
+}
+
+impl GradStats {
+    /// Adds one iteration's d(loss)/d(means2d) for the Gaussians that were visible.
+    pub fn add(&mut self, means2d: &[Real], radii: &[Real]) {
+        self.resize(radii.len());
+        for (i, r) in radii.iter().enumerate() {
+            if *r > 0.0 {
+                let (gx, gy) = (means2d[2 * i], means2d[2 * i + 1]);
+                self.sum[i] += (gx * gx + gy * gy).sqrt();
+                self.count[i] += 1;
+            }
+        }
+    }
+
+    pub fn resize(&mut self, n: usize) {
+        self.sum.resize(n, 0.0);
+        self.count.resize(n, 0);
+    }
+
+    pub fn reset(&mut self, n: usize) {
+        self.sum.clear();
+        self.count.clear();
+        self.resize(n);
+    }
+}
+
+/// What one densification did: the rows appended (copies of `sources`) and which old rows to
+/// drop afterwards (the split originals).
+pub struct Densified {
+    pub sources: Vec<usize>,
+    pub keep: Vec<bool>,
+    pub cloned: usize,
+    pub split: usize,
+}
+
+/// Clones and splits in place (appending rows) and returns what was done, so that optimiser
+/// state can follow: the appended rows are copies of `sources`; then `keep` applies.
+pub fn densify(
+    map: &mut GaussianMap,
+    stats: &GradStats,
+    extent: Real,
+    cfg: &DensifyConfig,
+    rng: &mut Rng,
+) -> Densified {
+    let n = map.len();
+    let mut keep = vec![true; n];
+    let mut clone_rows = Vec::new();
+    let mut split_rows = Vec::new();
+    let budget = cfg.max_gaussians.saturating_sub(n);
+    for i in 0..n.min(stats.count.len()) {
+        if stats.count[i] == 0 || stats.sum[i] / (stats.count[i] as Real) < cfg.grad_threshold {
+            continue;
+        }
+        let s = &map.log_scales[3 * i..3 * i + 3];
+        if s[0].max(s[1]).max(s[2]).exp() > cfg.split_scale * extent {
+            split_rows.push(i);
+        } else {
+            clone_rows.push(i);
+        }
+    }
+    // Within the budget: a clone adds one row, a split adds two and removes one.
+    clone_rows.truncate(budget);
+    split_rows.truncate(budget.saturating_sub(clone_rows.len()));
+    let mut sources = clone_rows.clone();
+    for &i in &split_rows {
+        sources.push(i);
+        sources.push(i);
+        keep[i] = false;
+    }
+    map.duplicate(&sources);
+    // Split children: centres sampled from the parent's distribution, scales / 1.6.
+    let first_split = n + clone_rows.len();
+    for (j, &src) in sources[clone_rows.len()..].iter().enumerate() {
+        let row = first_split + j;
+        let q = &map.quats[4 * src..4 * src + 4];
+        let r = quat_to_mat(q[0], q[1], q[2], q[3]);
+        let s = &map.log_scales[3 * src..3 * src + 3];
+        let local = V3::new(
+            rng.normal() as Real * s[0].exp(),
+            rng.normal() as Real * s[1].exp(),
+            rng.normal() as Real * s[2].exp(),
+        );
+        let offset = r * local;
+        for a in 0..3 {
+            map.means[3 * row + a] += offset[a];
+            map.log_scales[3 * row + a] -= (1.6 as Real).ln();
+        }
+    }
+    keep.resize(map.len(), true);
+    Densified {
+        sources,
+        keep,
+        cloned: clone_rows.len(),
+        split: split_rows.len(),
+    }
+}

@@ -1,0 +1,13 @@
+//! The Gaussian map and everything that changes it: growth from keyframes, pruning,
+//! densification, and training against keyframes.
+
+pub mod densify;
+pub mod features;
+pub mod grow;
+pub mod keyframe;
+pub mod prune;
+pub mod store;
+
+pub use features::FeatureGrid;
+pub use keyframe::{Keyframe, Level};
+pub use store::{GaussianMap, NewGaussian};

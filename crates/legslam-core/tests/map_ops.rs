@@ -1,0 +1,204 @@
+//! Map growth, pruning and densification on small hand-built cases.
+
+use legslam_core::camera::{invert_rigid, transform_point, Intrinsics};
+use legslam_core::map::densify::{densify, DensifyConfig, GradStats};
+use legslam_core::map::grow::{assign_features, grow, GrowConfig, RenderedView};
+use legslam_core::map::prune::{keep_mask, PruneConfig};
+use legslam_core::map::{FeatureGrid, GaussianMap, Keyframe, NewGaussian};
+use legslam_core::rng::Rng;
+use legslam_core::Real;
+
+fn pose() -> [[f64; 4]; 4] {
+    let (c, s) = (0.4f64.cos(), 0.4f64.sin());
+    [
+        [c, 0.0, s, 1.0],
+        [0.0, 1.0, 0.0, -0.5],
+        [-s, 0.0, c, 2.0],
+        [0.0, 0.0, 0.0, 1.0],
+    ]
+}
+
+/// A 16x12 keyframe looking at a wall 2 m away, with a hole of invalid depth.
+fn wall() -> Keyframe {
+    let k = Intrinsics {
+        fx: 20.0,
+        fy: 20.0,
+        cx: 7.5,
+        cy: 5.5,
+        width: 16,
+        height: 12,
+    };
+    let rgb = (0..16 * 12 * 3).map(|i| (i % 5) as Real / 5.0).collect();
+    let mut depth = vec![2.0; 16 * 12];
+    depth[16 + 1] = 0.0;
+    Keyframe::new(0, rgb, depth, k, pose(), 1).unwrap()
+}
+
+#[test]
+fn growth_back_projects_valid_sampled_pixels() {
+    let kf = wall();
+    let mut map = GaussianMap::new(1, 2);
+    let cfg = GrowConfig::default();
+    let grid = FeatureGrid::new(vec![1.0, 2.0], 1, 1, 2).unwrap();
+    let added = grow(
+        &mut map,
+        &kf.levels[0],
+        &kf.pose,
+        None,
+        Some(&grid),
+        7,
+        &cfg,
+    );
+    // stride 2 from offset 1: x in 1,3,..,15 (8), y in 1,..,11 (6); pixel (1,1) is a hole.
+    assert_eq!(added, 8 * 6 - 1);
+    assert_eq!(map.len(), added);
+    // Every centre lies on the wall: 2 m in front of the camera, at its pixel.
+    let w2c = invert_rigid(&kf.pose);
+    let m = &map.means[0..3];
+    let pc = transform_point(&w2c, [m[0] as f64, m[1] as f64, m[2] as f64]);
+    assert!((pc[2] - 2.0).abs() < 1e-5, "{pc:?}");
+    assert!(
+        (20.0 * pc[0] / pc[2] + 7.5 - 3.0).abs() < 1e-4,
+        "first is pixel (3, 1)"
+    );
+    assert_eq!(&map.features[0..2], &[1.0, 2.0]);
+    assert!(map.origin.iter().all(|o| *o == 7));
+    // Colour: C0 * sh + 0.5 gives back the pixel's colour.
+    let c0 = legslam_core::raster::sh::basis_c0();
+    let p = 16 + 3;
+    assert!((c0 * map.sh[0] + 0.5 - kf.levels[0].rgb[3 * p]).abs() < 1e-5);
+}
+
+#[test]
+fn growth_skips_what_the_map_explains() {
+    let kf = wall();
+    let mut map = GaussianMap::new(1, 0);
+    let n = 16 * 12;
+    let (alpha, depth) = (vec![1.0; n], vec![2.0; n]);
+    let view = RenderedView {
+        alpha: &alpha,
+        depth: &depth,
+    };
+    let cfg = GrowConfig::default();
+    assert_eq!(
+        grow(&mut map, &kf.levels[0], &kf.pose, Some(view), None, 0, &cfg),
+        0
+    );
+    // The map's surface is 30 cm behind the wall: everything is unexplained.
+    let far = vec![2.3; n];
+    let view = RenderedView {
+        alpha: &alpha,
+        depth: &far,
+    };
+    assert_eq!(
+        grow(&mut map, &kf.levels[0], &kf.pose, Some(view), None, 0, &cfg),
+        47
+    );
+    // Half transparent: unexplained too.
+    let half = vec![0.3; n];
+    let view = RenderedView {
+        alpha: &half,
+        depth: &depth,
+    };
+    assert_eq!(
+        grow(&mut map, &kf.levels[0], &kf.pose, Some(view), None, 0, &cfg),
+        47
+    );
+}
+
+#[test]
+fn late_features_go_to_the_keyframes_gaussians_only() {
+    let kf = wall();
+    let mut map = GaussianMap::new(1, 3);
+    let cfg = GrowConfig::default();
+    grow(&mut map, &kf.levels[0], &kf.pose, None, None, 1, &cfg);
+    let n1 = map.len();
+    grow(&mut map, &kf.levels[0], &kf.pose, None, None, 2, &cfg);
+    assert!(map.features.iter().all(|v| *v == 0.0) && !map.has_feature.iter().any(|h| *h));
+    // Left half of the grid is (1,0,0), right half (0,1,0).
+    let grid = FeatureGrid::new(vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0], 2, 1, 3).unwrap();
+    assert_feature_side(&map, &kf, &grid, n1);
+}
+
+fn assert_feature_side(map: &GaussianMap, kf: &Keyframe, grid: &FeatureGrid, n1: usize) {
+    let mut map = map.clone();
+    assign_features(&mut map, &kf.levels[0], &kf.pose, 1, grid);
+    assert!(map.has_feature[..n1].iter().all(|h| *h));
+    assert!(!map.has_feature[n1..].iter().any(|h| *h));
+    // The first Gaussian is at pixel x = 3 of 16 (left): mostly the left feature.
+    assert!(map.features[0] > 0.9 && map.features[1] < 0.1);
+    // The last of keyframe 1 is at x = 15 (right).
+    let last = n1 - 1;
+    assert!(map.features[3 * last + 1] > 0.9);
+}
+
+fn one(map: &mut GaussianMap, log_scale: Real, logit: Real) {
+    map.push(NewGaussian {
+        mean: [0.0, 0.0, 1.0],
+        log_scale: [log_scale, log_scale - 1.0, log_scale],
+        quat: [1.0, 0.0, 0.0, 0.0],
+        opacity_logit: logit,
+        sh: &[0.1, 0.2, 0.3],
+        feature: &[],
+        origin: 0,
+    });
+}
+
+#[test]
+fn pruning_removes_transparent_and_huge_gaussians() {
+    let mut map = GaussianMap::new(1, 0);
+    one(&mut map, -3.0, 0.0); // kept
+    one(&mut map, -3.0, -5.0); // opacity 0.0067 < 0.02
+    one(&mut map, 0.0, 0.0); // 1 m > 0.1 x extent 2 m
+    let keep = keep_mask(&map, 2.0, None, &PruneConfig::default());
+    assert_eq!(keep, vec![true, false, false]);
+    let screen = PruneConfig {
+        max_screen_radius: 10.0,
+        ..Default::default()
+    };
+    let keep = keep_mask(&map, 100.0, Some(&[5.0, 5.0, 50.0]), &screen);
+    assert_eq!(keep, vec![true, false, false]);
+}
+
+#[test]
+fn densification_clones_small_and_splits_large() {
+    let mut map = GaussianMap::new(1, 0);
+    one(&mut map, -6.0, 1.0); // small: cloned
+    one(&mut map, -2.0, 1.0); // large (0.135 > 0.01 x 2): split
+    one(&mut map, -6.0, 1.0); // small gradient: untouched
+    let stats = GradStats {
+        sum: vec![1.0, 1.0, 1e-6],
+        count: vec![2, 2, 2],
+    };
+    let mut rng = Rng::new(0);
+    let d = densify(&mut map, &stats, 2.0, &DensifyConfig::default(), &mut rng);
+    assert_eq!((d.cloned, d.split), (1, 1));
+    assert_eq!(d.sources, vec![0, 1, 1]);
+    assert_eq!(map.len(), 6);
+    map.retain(&d.keep);
+    assert_eq!(map.len(), 5);
+    // The split children are the last two rows: 1.6x smaller, centres moved apart.
+    let ls = &map.log_scales;
+    assert!((ls[3 * 3] - (-2.0 - (1.6 as Real).ln())).abs() < 1e-5);
+    assert_ne!(map.means[3 * 3], map.means[3 * 4]);
+    // Cloned row is an exact copy.
+    assert_eq!(&map.means[0..3], &map.means[3 * 2..3 * 3]);
+}
+
+#[test]
+fn densification_respects_the_cap() {
+    let mut map = GaussianMap::new(1, 0);
+    for _ in 0..4 {
+        one(&mut map, -6.0, 1.0);
+    }
+    let stats = GradStats {
+        sum: vec![1.0; 4],
+        count: vec![1; 4],
+    };
+    let cfg = DensifyConfig {
+        max_gaussians: 6,
+        ..Default::default()
+    };
+    densify(&mut map, &stats, 2.0, &cfg, &mut Rng::new(1));
+    assert_eq!(map.len(), 6);
+}
