@@ -1,5 +1,7 @@
 //! Binning of projected Gaussians into screen tiles, each tile's list sorted front to back.
 
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+
 use rayon::prelude::*;
 
 use super::TILE;
@@ -47,6 +49,17 @@ pub(crate) fn rect_area(r: &Rect) -> usize {
     (r[2].saturating_sub(r[0]) as usize) * (r[3].saturating_sub(r[1]) as usize)
 }
 
+/// Calls `f` with the index of every tile in `r`.
+#[inline]
+fn for_each_tile(grid: &Grid, r: &Rect, mut f: impl FnMut(usize)) {
+    for ty in r[1]..r[3] {
+        let row = ty as usize * grid.tiles_x;
+        for tx in r[0]..r[2] {
+            f(row + tx as usize);
+        }
+    }
+}
+
 /// Per-tile lists: tile `t` composites `pair_gauss[tile_start[t]..tile_start[t + 1]]`.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Bins {
@@ -54,41 +67,43 @@ pub(crate) struct Bins {
     pub pair_gauss: Vec<u32>,
 }
 
-/// Bins Gaussians by tile and sorts each tile by depth (ties by index, so the order is
-/// deterministic).
+/// Bins Gaussians by tile and sorts each tile by depth, ties by index. The keys are unique,
+/// so the result does not depend on the order the parallel fill happens to run in.
 pub(crate) fn bin(grid: &Grid, rects: &[Rect], depth: &[Real]) -> Bins {
     let n_tiles = grid.len();
+    let counts: Vec<AtomicU32> = (0..n_tiles).map(|_| AtomicU32::new(0)).collect();
+    rects.par_iter().with_min_len(4096).for_each(|r| {
+        for_each_tile(grid, r, |t| {
+            counts[t].fetch_add(1, Ordering::Relaxed);
+        })
+    });
     let mut tile_start = vec![0u32; n_tiles + 1];
-    for r in rects {
-        for ty in r[1]..r[3] {
-            let row = ty as usize * grid.tiles_x;
-            for tx in r[0]..r[2] {
-                tile_start[row + tx as usize + 1] += 1;
-            }
-        }
-    }
     for t in 0..n_tiles {
-        tile_start[t + 1] += tile_start[t];
+        tile_start[t + 1] = tile_start[t] + counts[t].load(Ordering::Relaxed);
     }
     let total = tile_start[n_tiles] as usize;
     // Key: depth's f32 bit pattern (monotonic for positive floats) above the index.
-    let mut keys = vec![0u64; total];
-    let mut cursor: Vec<u32> = tile_start[..n_tiles].to_vec();
-    for (i, r) in rects.iter().enumerate() {
-        if rect_area(r) == 0 {
-            continue;
-        }
-        #[allow(clippy::unnecessary_cast)] // Real may be f64
-        let key = ((depth[i] as f32).to_bits() as u64) << 32 | i as u64;
-        for ty in r[1]..r[3] {
-            let row = ty as usize * grid.tiles_x;
-            for tx in r[0]..r[2] {
-                let c = &mut cursor[row + tx as usize];
-                keys[*c as usize] = key;
-                *c += 1;
+    let cursor: Vec<AtomicU32> = tile_start[..n_tiles]
+        .iter()
+        .map(|&s| AtomicU32::new(s))
+        .collect();
+    let slots: Vec<AtomicU64> = (0..total).map(|_| AtomicU64::new(0)).collect();
+    rects
+        .par_iter()
+        .enumerate()
+        .with_min_len(4096)
+        .for_each(|(i, r)| {
+            if rect_area(r) == 0 {
+                return;
             }
-        }
-    }
+            #[allow(clippy::unnecessary_cast)] // Real may be f64
+            let key = ((depth[i] as f32).to_bits() as u64) << 32 | i as u64;
+            for_each_tile(grid, r, |t| {
+                let c = cursor[t].fetch_add(1, Ordering::Relaxed);
+                slots[c as usize].store(key, Ordering::Relaxed);
+            })
+        });
+    let mut keys: Vec<u64> = slots.into_iter().map(AtomicU64::into_inner).collect();
     let mut slices = Vec::with_capacity(n_tiles);
     let mut rest = keys.as_mut_slice();
     for t in 0..n_tiles {
