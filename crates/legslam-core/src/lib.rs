@@ -3,8 +3,10 @@
 //! - [`raster`]: the differentiable Gaussian rasterizer (forward and hand-written backward).
 //! - [`camera`]: pinhole intrinsics and rigid poses shared by the rasterizer and the tracker.
 //! - [`track`]: dense RGB-D pose tracking.
+//! - [`loss`]: the mapper's image losses (L1, SSIM, depth, feature cosine) with gradients.
 
 pub mod camera;
+pub mod loss;
 pub mod raster;
 pub mod track;
 
