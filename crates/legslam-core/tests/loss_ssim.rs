@@ -202,7 +202,7 @@ fn same_bits_on_one_and_two_threads() {
 fn bad_sizes_are_errors() {
     let mut ssim = Ssim::new();
     let x = vec![0.5; 12];
-    let mut g = vec![0.0; 12];
+    let mut g = [0.0; 12];
     assert!(ssim
         .value(&x, &x, 2, 2, 2)
         .unwrap_err()

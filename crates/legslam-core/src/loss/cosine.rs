@@ -76,7 +76,7 @@ pub(crate) fn cosine_into(
         for ((g, &ri), &ti) in g.iter_mut().zip(r).zip(t) {
             emit.put(g, -inv * (a * ti - b * ri));
         }
-        1.0 - cos as f64
+        1.0 - f64::from(cos)
     });
     Ok(if counted == 0 {
         0.0

@@ -70,7 +70,7 @@ pub(crate) fn l1_into(
         let mut s = 0.0f64;
         for ((g, &r), &t) in g.iter_mut().zip(r).zip(t) {
             let d = r - t;
-            s += d.abs() as f64;
+            s += f64::from(d.abs());
             emit.put(g, inv * sign(d));
         }
         s
@@ -114,7 +114,7 @@ pub(crate) fn depth_l1_into(
             return 0.0;
         }
         emit.put(&mut g[0], inv * sign(r - t));
-        (r - t).abs() as f64
+        f64::from((r - t).abs())
     });
     Ok(if counted == 0 {
         0.0

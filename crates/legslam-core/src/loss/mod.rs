@@ -8,6 +8,9 @@
 //! Images are row-major, channel-last `&[Real]`. Values are accumulated in f64 in fixed-size
 //! blocks summed in a fixed order, so results do not depend on the thread count.
 
+// Real -> f64 via f64::from is lossless, and a no-op under the `f64` feature.
+#![allow(clippy::useless_conversion)]
+
 mod cosine;
 mod l1;
 mod ssim;
@@ -162,10 +165,10 @@ impl Loss {
                 )
             }
         }
-        t.total = l1_scale as f64 * t.color_l1
-            + ssim_scale as f64 * (1.0 - t.ssim)
-            + w.depth as f64 * t.depth_l1
-            + w.feature as f64 * t.feature;
+        t.total = f64::from(l1_scale) * t.color_l1
+            + f64::from(ssim_scale) * (1.0 - t.ssim)
+            + f64::from(w.depth) * t.depth_l1
+            + f64::from(w.feature) * t.feature;
         Ok(t)
     }
 }

@@ -144,7 +144,7 @@ impl Ssim {
                 let b2 = sxx + syy + C2;
                 let inv = 1.0 / (b1 * b2);
                 let s = a1 * a2 * inv;
-                sum += s as f64;
+                sum += f64::from(s);
                 if want_grad {
                     // dS/dA1 = A2 inv, dS/dA2 = A1 inv, dS/dB1 = -S/B1 = -S B2 inv,
                     // dS/dB2 = -S/B2 = -S B1 inv (no further divisions).
