@@ -4,9 +4,13 @@
 //! - [`camera`]: pinhole intrinsics and rigid poses shared by the rasterizer and the tracker.
 //! - [`map`]: the Gaussian map and how it grows, is pruned, densified and trained.
 //! - [`track`]: dense RGB-D pose tracking.
+//! - [`loss`]: the mapper's image losses (L1, SSIM, depth, feature cosine) with gradients.
+//! - [`optim`]: Adam over the Gaussians' parameter groups, following rows as they come and go.
 
 pub mod camera;
+pub mod loss;
 pub mod map;
+pub mod optim;
 pub mod raster;
 pub mod rng;
 pub mod track;

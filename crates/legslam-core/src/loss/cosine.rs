@@ -1,0 +1,86 @@
+//! Feature loss: mean over counted pixels of 1 - cos(rendered, target).
+
+use super::{check_len, sum_items, Emit};
+use crate::Real;
+
+/// Norms below this are clamped to it: cos = r.t / (max(|r|, eps) max(|t|, eps)).
+/// For |r| <= eps the cosine is therefore linear in r and its gradient is t / (eps max(|t|,
+/// eps)), which is large: a pixel whose rendered feature is (near) zero pulls hard along the
+/// target. A zero target gives cos = 0 (loss 1) with zero gradient; mask such pixels out.
+pub const COS_EPS: Real = 1e-6;
+
+/// Mean of 1 - cos(r, t) over the pixels where `mask` is true (all without a mask), with r and
+/// t the `channels`-vectors of `rendered` and `target` at a pixel; `grad` receives
+/// d(mean)/d(rendered), 0 on masked-out pixels. Returns 0 when no pixel counts.
+pub fn cosine(
+    rendered: &[Real],
+    target: &[Real],
+    channels: usize,
+    mask: Option<&[bool]>,
+    grad: &mut [Real],
+) -> Result<f64, String> {
+    cosine_into(rendered, target, channels, mask, grad, Emit::set(1.0))
+}
+
+pub(crate) fn cosine_into(
+    rendered: &[Real],
+    target: &[Real],
+    channels: usize,
+    mask: Option<&[bool]>,
+    grad: &mut [Real],
+    emit: Emit,
+) -> Result<f64, String> {
+    if channels == 0 || rendered.len() % channels != 0 {
+        return Err(format!(
+            "feature loss: the rendered map holds {} values, not a whole number of {channels}-channel pixels",
+            rendered.len()
+        ));
+    }
+    let pixels = rendered.len() / channels;
+    check_len("target feature map", target.len(), rendered.len())?;
+    check_len("feature gradient buffer", grad.len(), rendered.len())?;
+    let counted = match mask {
+        Some(m) => {
+            check_len("feature mask (one per pixel)", m.len(), pixels)?;
+            m.iter().filter(|&&b| b).count()
+        }
+        None => pixels,
+    };
+    let inv = if counted == 0 {
+        0.0
+    } else {
+        1.0 / counted as Real
+    };
+    let sum = sum_items(grad, channels, |p, g| {
+        if mask.is_some_and(|m| !m[p]) {
+            g.iter_mut().for_each(|g| emit.put(g, 0.0));
+            return 0.0;
+        }
+        let (r, t) = (
+            &rendered[p * channels..][..channels],
+            &target[p * channels..][..channels],
+        );
+        let (mut rr, mut tt, mut rt) = (0.0, 0.0, 0.0);
+        for (&a, &b) in r.iter().zip(t) {
+            rr += a * a;
+            tt += b * b;
+            rt += a * b;
+        }
+        let norm_r = rr.sqrt();
+        let (nr, nt) = (norm_r.max(COS_EPS), tt.sqrt().max(COS_EPS));
+        let cos = rt / (nr * nt);
+        // d cos/dr = t / (nr nt) - cos r / |r|^2 while |r| > eps; the second part vanishes
+        // where the norm is clamped.
+        let a = 1.0 / (nr * nt);
+        let b = if norm_r > COS_EPS { cos / rr } else { 0.0 };
+        for ((g, &ri), &ti) in g.iter_mut().zip(r).zip(t) {
+            emit.put(g, -inv * (a * ti - b * ri));
+        }
+        1.0 - f64::from(cos)
+    });
+    Ok(if counted == 0 {
+        0.0
+    } else {
+        sum / counted as f64
+    })
+}

@@ -1,0 +1,235 @@
+//! Image losses of the mapper, each returning its value and writing d(loss)/d(rendered image)
+//! into a caller-provided buffer (no allocation beyond the reusable [`Ssim`] / [`Loss`]
+//! workspaces):
+//!
+//! L = w_color ((1 - lambda) L1(color) + lambda (1 - SSIM(color)))
+//!   + w_depth L1 over valid depth + w_feat mean(1 - cos(feature, target feature)).
+//!
+//! Images are row-major, channel-last `&[Real]`. Values are accumulated in f64 in fixed-size
+//! blocks summed in a fixed order, so results do not depend on the thread count.
+
+// Real -> f64 via f64::from is lossless, and a no-op under the `f64` feature.
+#![allow(clippy::useless_conversion)]
+
+mod cosine;
+mod l1;
+mod ssim;
+
+pub use cosine::{cosine, COS_EPS};
+pub use l1::{depth_l1, l1};
+pub use ssim::Ssim;
+
+use rayon::prelude::*;
+
+use crate::Real;
+
+/// Weights of the mapper's loss terms.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LossWeights {
+    /// Weight of the whole colour term.
+    pub color: Real,
+    /// Share of `1 - SSIM` in the colour term (the rest is L1), 0.2 as in 3DGS.
+    pub ssim_lambda: Real,
+    pub depth: Real,
+    pub feature: Real,
+}
+
+impl Default for LossWeights {
+    fn default() -> Self {
+        LossWeights {
+            color: 1.0,
+            ssim_lambda: 0.2,
+            depth: 1.0,
+            feature: 1.0,
+        }
+    }
+}
+
+/// Rendered depth and its target (0 or non-finite target = invalid), one value per pixel.
+#[derive(Clone, Copy, Debug)]
+pub struct DepthInputs<'a> {
+    pub rendered: &'a [Real],
+    pub target: &'a [Real],
+}
+
+/// Rendered feature map and its target, `channels` values per pixel at their own resolution.
+#[derive(Clone, Copy, Debug)]
+pub struct FeatureInputs<'a> {
+    pub rendered: &'a [Real],
+    pub target: &'a [Real],
+    pub channels: usize,
+    /// Pixels with a valid target; `None` uses every pixel.
+    pub mask: Option<&'a [bool]>,
+}
+
+/// What the combined loss compares. Colour is RGB at `width x height`, as is depth.
+#[derive(Clone, Copy, Debug)]
+pub struct LossInputs<'a> {
+    pub width: usize,
+    pub height: usize,
+    pub color: &'a [Real],
+    pub target_color: &'a [Real],
+    /// Pixels the colour L1 counts; `None` counts all. SSIM always uses the whole image.
+    pub color_mask: Option<&'a [bool]>,
+    pub depth: Option<DepthInputs<'a>>,
+    pub features: Option<FeatureInputs<'a>>,
+}
+
+/// Where the combined loss writes its gradients (overwritten, not accumulated). A buffer must
+/// be given exactly when its input is.
+#[derive(Debug)]
+pub struct LossGrads<'a> {
+    pub color: &'a mut [Real],
+    pub depth: Option<&'a mut [Real]>,
+    pub features: Option<&'a mut [Real]>,
+}
+
+/// The unweighted value of every term (0 for an absent one) and the weighted total.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LossTerms {
+    pub total: f64,
+    pub color_l1: f64,
+    /// SSIM itself (the loss uses 1 - SSIM).
+    pub ssim: f64,
+    pub depth_l1: f64,
+    /// Mean 1 - cos over the counted pixels.
+    pub feature: f64,
+}
+
+/// The mapper's combined loss with its reusable SSIM workspace.
+#[derive(Debug, Default)]
+pub struct Loss {
+    pub weights: LossWeights,
+    ssim: Ssim,
+}
+
+impl Loss {
+    pub fn new(weights: LossWeights) -> Self {
+        Loss {
+            weights,
+            ssim: Ssim::new(),
+        }
+    }
+
+    /// Evaluates every term and writes d(total)/d(rendered colour, depth, features).
+    pub fn evaluate(&mut self, inputs: &LossInputs, grads: LossGrads) -> Result<LossTerms, String> {
+        let w = self.weights;
+        let (width, height) = (inputs.width, inputs.height);
+        let l1_scale = w.color * (1.0 - w.ssim_lambda);
+        let ssim_scale = w.color * w.ssim_lambda;
+        check_len("rendered colour", inputs.color.len(), width * height * 3)?;
+        let mut t = LossTerms {
+            color_l1: l1::l1_into(
+                inputs.color,
+                inputs.target_color,
+                inputs.color_mask,
+                3,
+                grads.color,
+                Emit::set(l1_scale),
+            )?,
+            ..LossTerms::default()
+        };
+        // d(1 - SSIM) = -dSSIM, added onto the L1 gradient.
+        let ssim_grad = (ssim_scale != 0.0).then_some((&mut *grads.color, Emit::add(-ssim_scale)));
+        t.ssim = self.ssim.run(
+            inputs.color,
+            inputs.target_color,
+            (width, height, 3),
+            ssim_grad,
+        )?;
+        match (inputs.depth, grads.depth) {
+            (Some(d), Some(g)) => {
+                check_len("rendered depth", d.rendered.len(), width * height)?;
+                t.depth_l1 = l1::depth_l1_into(d.rendered, d.target, g, Emit::set(w.depth))?;
+            }
+            (None, None) => {}
+            _ => {
+                return Err("depth needs both its inputs and a gradient buffer, or neither".into())
+            }
+        }
+        match (inputs.features, grads.features) {
+            (Some(f), Some(g)) => {
+                t.feature = cosine::cosine_into(
+                    f.rendered,
+                    f.target,
+                    f.channels,
+                    f.mask,
+                    g,
+                    Emit::set(w.feature),
+                )?;
+            }
+            (None, None) => {}
+            _ => {
+                return Err(
+                    "features need both their inputs and a gradient buffer, or neither".into(),
+                )
+            }
+        }
+        t.total = f64::from(l1_scale) * t.color_l1
+            + f64::from(ssim_scale) * (1.0 - t.ssim)
+            + f64::from(w.depth) * t.depth_l1
+            + f64::from(w.feature) * t.feature;
+        Ok(t)
+    }
+}
+
+/// How a term writes `scale * d(term)/d(input)` into a gradient buffer: set or add.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Emit {
+    pub scale: Real,
+    pub add: bool,
+}
+
+impl Emit {
+    pub fn set(scale: Real) -> Self {
+        Emit { scale, add: false }
+    }
+    pub fn add(scale: Real) -> Self {
+        Emit { scale, add: true }
+    }
+    #[inline]
+    pub fn put(self, g: &mut Real, d: Real) {
+        *g = if self.add {
+            *g + self.scale * d
+        } else {
+            self.scale * d
+        };
+    }
+}
+
+pub(crate) fn check_len(name: &str, got: usize, want: usize) -> Result<(), String> {
+    if got == want {
+        Ok(())
+    } else {
+        Err(format!("the {name} must hold {want} values, got {got}"))
+    }
+}
+
+/// Fixed number of partial sums, so the reduction order never depends on the thread count.
+const BLOCKS: usize = 64;
+
+/// Runs `f(item index, item)` over the `item`-value items of `buf` in parallel and returns
+/// the sum of its results, added in a fixed order.
+pub(crate) fn sum_items(
+    buf: &mut [Real],
+    item: usize,
+    f: impl Fn(usize, &mut [Real]) -> f64 + Sync,
+) -> f64 {
+    if item == 0 || buf.len() < item {
+        return 0.0;
+    }
+    let per = (buf.len() / item).div_ceil(BLOCKS);
+    let mut partial = [0.0f64; BLOCKS];
+    partial
+        .par_iter_mut()
+        .zip(buf.par_chunks_mut(per * item))
+        .enumerate()
+        .for_each(|(b, (p, chunk))| {
+            *p = chunk
+                .chunks_exact_mut(item)
+                .enumerate()
+                .map(|(i, v)| f(b * per + i, v))
+                .sum();
+        });
+    partial.iter().sum()
+}

@@ -1,0 +1,306 @@
+//! Adam (PyTorch's update, 3DGS settings) over the Gaussians' parameter groups.
+//!
+//! One global step count for every row, as in 3DGS. Rows come and go with the map:
+//! [`Adam::append`] adds rows with zero moments, [`Adam::retain`] drops rows, and
+//! [`Adam::gather`] rebuilds the rows from old row indices, copying their moments (for clones
+//! and splits; to start a new row from zero moments instead, `append` it).
+
+use rayon::prelude::*;
+
+use super::groups::{Groups, NAMES};
+use crate::Real;
+
+/// Rows per parallel task: big enough to amortise scheduling, small enough to balance.
+const ROWS_PER_TASK: usize = 1024;
+
+/// Log-linear decay of a learning rate from its initial value to `final_factor` times it over
+/// `steps` steps, then constant (the 3DGS position schedule, `get_expon_lr_func`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ExpDecay {
+    pub final_factor: Real,
+    pub steps: u64,
+}
+
+impl ExpDecay {
+    fn factor(&self, step: u64) -> Real {
+        let progress = (step as f64 / self.steps as f64).min(1.0);
+        f64::from(self.final_factor).powf(progress) as Real
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamConfig {
+    /// Learning rates per group; `means` is per unit of scene extent.
+    pub lr: Groups<Real>,
+    /// Scene size the position learning rate scales with.
+    pub scene_extent: Real,
+    /// Optional decay of the position learning rate.
+    pub means_decay: Option<ExpDecay>,
+    pub beta1: Real,
+    pub beta2: Real,
+    pub eps: Real,
+    /// "Sparse Adam": a row whose gradient is exactly zero (a Gaussian nothing saw) keeps its
+    /// moments and parameters instead of coasting on its momentum.
+    pub sparse: bool,
+}
+
+impl Default for AdamConfig {
+    /// The LEG-SLAM / 3DGS settings (paper-notes.md), scene extent 1, no decay, dense updates.
+    fn default() -> Self {
+        AdamConfig {
+            lr: Groups {
+                means: 3.2e-4,
+                log_scales: 5e-3,
+                quats: 1e-3,
+                opacity_logits: 0.05,
+                sh: 2.5e-3,
+                features: 1.5e-3,
+            },
+            scene_extent: 1.0,
+            means_decay: None,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-15,
+            sparse: false,
+        }
+    }
+}
+
+impl AdamConfig {
+    pub fn validate(&self) -> Result<(), String> {
+        for (name, lr) in NAMES.iter().zip(self.lr.into_array()) {
+            if !(lr.is_finite() && lr >= 0.0) {
+                return Err(format!(
+                    "the {name} learning rate must be finite and >= 0, got {lr}"
+                ));
+            }
+        }
+        if !(self.scene_extent.is_finite() && self.scene_extent > 0.0) {
+            return Err(format!(
+                "the scene extent must be > 0, got {}",
+                self.scene_extent
+            ));
+        }
+        if let Some(d) = self.means_decay {
+            if !(d.final_factor.is_finite() && d.final_factor > 0.0) || d.steps == 0 {
+                return Err(format!(
+                    "the position decay needs final_factor > 0 and steps > 0, got {d:?}"
+                ));
+            }
+        }
+        for (name, b) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(0.0..1.0).contains(&b) {
+                return Err(format!("{name} must lie in [0, 1), got {b}"));
+            }
+        }
+        if !(self.eps.is_finite() && self.eps > 0.0) {
+            return Err(format!("eps must be > 0, got {}", self.eps));
+        }
+        Ok(())
+    }
+}
+
+/// Adam state for N Gaussians: first and second moments laid out like the parameters.
+#[derive(Clone, Debug)]
+pub struct Adam {
+    pub config: AdamConfig,
+    widths: [usize; 6],
+    m: [Vec<Real>; 6],
+    v: [Vec<Real>; 6],
+    len: usize,
+    steps: u64,
+}
+
+impl Adam {
+    /// State for `len` Gaussians with `sh_coeffs` SH coefficients per channel and
+    /// `num_features` feature channels, all moments zero.
+    pub fn new(
+        config: AdamConfig,
+        len: usize,
+        sh_coeffs: usize,
+        num_features: usize,
+    ) -> Result<Self, String> {
+        config.validate()?;
+        let widths = [3, 3, 4, 1, 3 * sh_coeffs, num_features];
+        Ok(Adam {
+            config,
+            widths,
+            m: widths.map(|w| vec![0.0; len * w]),
+            v: widths.map(|w| vec![0.0; len * w]),
+            len,
+            steps: 0,
+        })
+    }
+
+    /// Number of Gaussians (rows).
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Steps taken so far.
+    pub fn steps(&self) -> u64 {
+        self.steps
+    }
+
+    /// Values per row of each group.
+    pub fn widths(&self) -> Groups<usize> {
+        Groups::from_array(self.widths)
+    }
+
+    /// First and second moments, laid out like the parameters.
+    pub fn moments(&self) -> (Groups<&[Real]>, Groups<&[Real]>) {
+        (
+            Groups::from_array(self.m.each_ref().map(|a| &a[..])),
+            Groups::from_array(self.v.each_ref().map(|a| &a[..])),
+        )
+    }
+
+    /// The learning rates the next step will use (position scaled by the extent and decayed).
+    pub fn learning_rates(&self) -> Groups<Real> {
+        let c = &self.config;
+        let decay = c.means_decay.map_or(1.0, |d| d.factor(self.steps));
+        Groups {
+            means: c.lr.means * c.scene_extent * decay,
+            ..c.lr
+        }
+    }
+
+    /// One Adam step on every group: `params -= lr m_hat / (sqrt(v_hat) + eps)`.
+    pub fn step(
+        &mut self,
+        params: Groups<&mut [Real]>,
+        grads: Groups<&[Real]>,
+    ) -> Result<(), String> {
+        self.config.validate()?;
+        let params = params.into_array();
+        let grads = grads.into_array();
+        for i in 0..6 {
+            let want = self.len * self.widths[i];
+            if params[i].len() != want || grads[i].len() != want {
+                return Err(format!(
+                    "Adam holds {} Gaussians: {} parameters and gradients must hold {want} values, got {} and {}",
+                    self.len, NAMES[i], params[i].len(), grads[i].len()
+                ));
+            }
+        }
+        let lrs = self.learning_rates().into_array();
+        self.steps += 1;
+        let c = self.config;
+        let t = self.steps as f64;
+        let bias1 = 1.0 - f64::from(c.beta1).powf(t);
+        let bias2_sqrt = (1.0 - f64::from(c.beta2).powf(t)).sqrt();
+        for (i, (p, g)) in params.into_iter().zip(grads).enumerate() {
+            let w = self.widths[i];
+            if w == 0 {
+                continue;
+            }
+            let step_size = (f64::from(lrs[i]) / bias1) as Real;
+            let inv_bias2_sqrt = (1.0 / bias2_sqrt) as Real;
+            let chunk = ROWS_PER_TASK * w;
+            p.par_chunks_mut(chunk)
+                .zip(self.m[i].par_chunks_mut(chunk))
+                .zip(self.v[i].par_chunks_mut(chunk))
+                .zip(g.par_chunks(chunk))
+                .for_each(|(((p, m), v), g)| {
+                    let rows = p
+                        .chunks_exact_mut(w)
+                        .zip(m.chunks_exact_mut(w))
+                        .zip(v.chunks_exact_mut(w))
+                        .zip(g.chunks_exact(w));
+                    for (((p, m), v), g) in rows {
+                        if c.sparse && g.iter().all(|&x| x == 0.0) {
+                            continue;
+                        }
+                        for (((p, m), v), &g) in p.iter_mut().zip(m).zip(v).zip(g) {
+                            *m = c.beta1 * *m + (1.0 - c.beta1) * g;
+                            *v = c.beta2 * *v + (1.0 - c.beta2) * g * g;
+                            *p -= step_size * *m / (v.sqrt() * inv_bias2_sqrt + c.eps);
+                        }
+                    }
+                });
+        }
+        Ok(())
+    }
+
+    /// Adds `n` rows at the end with zero moments (new Gaussians).
+    pub fn append(&mut self, n: usize) {
+        self.len += n;
+        for i in 0..6 {
+            let want = self.len * self.widths[i];
+            self.m[i].resize(want, 0.0);
+            self.v[i].resize(want, 0.0);
+        }
+    }
+
+    /// Keeps the rows where `keep` is true, in order (pruning).
+    pub fn retain(&mut self, keep: &[bool]) -> Result<(), String> {
+        if keep.len() != self.len {
+            return Err(format!(
+                "retain needs one flag per Gaussian ({}), got {}",
+                self.len,
+                keep.len()
+            ));
+        }
+        for i in 0..6 {
+            let w = self.widths[i];
+            for a in [&mut self.m[i], &mut self.v[i]] {
+                let mut out = 0;
+                for (row, _) in keep.iter().enumerate().filter(|(_, &k)| k) {
+                    a.copy_within(row * w..(row + 1) * w, out * w);
+                    out += 1;
+                }
+                a.truncate(out * w);
+            }
+        }
+        self.len = keep.iter().filter(|&&k| k).count();
+        Ok(())
+    }
+
+    /// Replaces the rows by old rows `indices[0], indices[1], ...` with their moments
+    /// (repeats allowed: a clone or split child inherits its parent's moments).
+    pub fn gather(&mut self, indices: &[usize]) -> Result<(), String> {
+        if let Some(&bad) = indices.iter().find(|&&r| r >= self.len) {
+            return Err(format!(
+                "gather index {bad} is out of range for {} Gaussians",
+                self.len
+            ));
+        }
+        for i in 0..6 {
+            let w = self.widths[i];
+            for a in [&mut self.m[i], &mut self.v[i]] {
+                *a = indices
+                    .iter()
+                    .flat_map(|&r| a[r * w..(r + 1) * w].iter().copied())
+                    .collect();
+            }
+        }
+        self.len = indices.len();
+        Ok(())
+    }
+}
+
+/// Rescales each (w, x, y, z) quaternion to unit length, as needed after every step; a zero or
+/// non-finite one becomes the identity (1, 0, 0, 0).
+pub fn normalize_quats(quats: &mut [Real]) -> Result<(), String> {
+    if quats.len() % 4 != 0 {
+        return Err(format!(
+            "quats must hold 4 values per Gaussian, got {} values",
+            quats.len()
+        ));
+    }
+    quats.par_chunks_mut(4 * ROWS_PER_TASK).for_each(|c| {
+        for q in c.chunks_exact_mut(4) {
+            let norm = q.iter().map(|v| v * v).sum::<Real>().sqrt();
+            if norm > 0.0 && norm.is_finite() {
+                q.iter_mut().for_each(|v| *v /= norm);
+            } else {
+                q.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
+            }
+        }
+    });
+    Ok(())
+}
