@@ -82,29 +82,26 @@ impl Level {
                         self.depth[b],
                         self.depth[b + 1],
                     ];
-                    // Average the valid samples on the nearest surface of the block, so that
-                    // depth edges are not blurred into points floating in between.
-                    let mut zmin = f32::INFINITY;
-                    for &z in &d {
-                        if z > 0.0 && z < zmin {
-                            zmin = z;
-                        }
-                    }
-                    let mut sum = 0.0;
-                    let mut n = 0.0;
-                    if zmin.is_finite() {
-                        let lim = zmin * 1.03;
-                        for &z in &d {
-                            if z > 0.0 && z <= lim {
-                                sum += z;
-                                n += 1.0;
-                            }
-                        }
-                    }
-                    drow[x] = if n > 0.0 { sum / n } else { 0.0 };
+                    drow[x] = block_depth(d);
                 }
             });
         out
+    }
+
+    /// A level that is not stored (below the finest used level, never read).
+    fn skipped(w: usize, h: usize) -> Level {
+        Level {
+            w,
+            h,
+            fx: 0.0,
+            fy: 0.0,
+            cx: 0.0,
+            cy: 0.0,
+            xr: Vec::new(),
+            yr: Vec::new(),
+            intensity: Vec::new(),
+            depth: Vec::new(),
+        }
     }
 
     /// Camera-space point of pixel `(x, y)` with depth `z`.
@@ -119,7 +116,8 @@ impl Level {
 pub struct Frame {
     pub(crate) levels: Vec<Level>,
     pub(crate) intrinsics: Intrinsics,
-    /// Number of valid depth pixels at full resolution (after the depth-range cut).
+    /// Number of valid depth pixels (after the depth-range cut) at the first stored level
+    /// (full resolution if `finest_level == 0`, else half resolution).
     pub(crate) valid_pixels: usize,
 }
 
@@ -137,6 +135,31 @@ pub struct Reference {
     pub(crate) normals: Vec<Vec<[f32; 4]>>,
 }
 
+/// Depth of a 2x2 block: the average of the valid samples on the nearest surface, so that
+/// depth edges are not blurred into points floating in between.
+#[inline(always)]
+fn block_depth(d: [f32; 4]) -> f32 {
+    let mut zmin = f32::INFINITY;
+    for &z in &d {
+        if z > 0.0 && z < zmin {
+            zmin = z;
+        }
+    }
+    if !zmin.is_finite() {
+        return 0.0;
+    }
+    let lim = zmin * 1.03;
+    let (mut sum, mut n) = (0.0, 0.0);
+    for &z in &d {
+        if z > 0.0 && z <= lim {
+            sum += z;
+            n += 1.0;
+        }
+    }
+    sum / n
+}
+
+#[inline(always)]
 fn luma(r: f32, g: f32, b: f32) -> f32 {
     0.299 * r + 0.587 * g + 0.114 * b
 }
@@ -186,41 +209,78 @@ impl Frame {
                 return Err("colour contains non-finite values".into());
             }
         }
-        let mut l0 = Level::new(w, h, k.fx, k.fy, k.cx, k.cy);
         let (zmin, zmax) = (config.min_depth as f32, config.max_depth as f32);
-        l0.intensity
-            .par_chunks_mut(w)
-            .zip(l0.depth.par_chunks_mut(w))
-            .enumerate()
-            .for_each(|(y, (irow, drow))| {
-                let o = y * w;
-                match color {
-                    Color::Rgb8(c) => {
-                        const S: f32 = 1.0 / 255.0;
-                        for x in 0..w {
-                            let p = 3 * (o + x);
-                            irow[x] = S * luma(c[p] as f32, c[p + 1] as f32, c[p + 2] as f32);
-                        }
-                    }
-                    Color::RgbF32(c) => {
-                        for x in 0..w {
-                            let p = 3 * (o + x);
-                            irow[x] = luma(c[p], c[p + 1], c[p + 2]);
-                        }
-                    }
+        let sane = |z: f32| {
+            if z.is_finite() && z >= zmin && z <= zmax {
+                z
+            } else {
+                0.0
+            }
+        };
+        // Intensity of input pixel `i` (row-major index).
+        let lum = |i: usize| -> f32 {
+            let p = 3 * i;
+            match color {
+                Color::Rgb8(c) => {
+                    const S: f32 = 1.0 / 255.0;
+                    S * luma(c[p] as f32, c[p + 1] as f32, c[p + 2] as f32)
                 }
-                for x in 0..w {
-                    let z = depth[o + x];
-                    drow[x] = if z.is_finite() && z >= zmin && z <= zmax {
-                        z
-                    } else {
-                        0.0
-                    };
-                }
-            });
-        let valid_pixels = l0.depth.iter().filter(|&&z| z > 0.0).count();
-        let mut levels = vec![l0];
-        for l in 1..nl {
+                Color::RgbF32(c) => luma(c[p], c[p + 1], c[p + 2]),
+            }
+        };
+        let mut levels = Vec::with_capacity(nl);
+        if config.finest_level == 0 {
+            let mut l0 = Level::new(w, h, k.fx, k.fy, k.cx, k.cy);
+            l0.intensity
+                .par_chunks_mut(w)
+                .zip(l0.depth.par_chunks_mut(w))
+                .enumerate()
+                .for_each(|(y, (irow, drow))| {
+                    let o = y * w;
+                    for x in 0..w {
+                        irow[x] = lum(o + x);
+                        drow[x] = sane(depth[o + x]);
+                    }
+                });
+            levels.push(l0);
+        } else {
+            // Level 0 is never used: build level 1 straight from the input (half the memory
+            // traffic of storing level 0 first).
+            levels.push(Level::skipped(w, h));
+            let (w1, h1) = (w / 2, h / 2);
+            let mut l1 = Level::new(
+                w1,
+                h1,
+                k.fx * 0.5,
+                k.fy * 0.5,
+                (k.cx + 0.5) * 0.5 - 0.5,
+                (k.cy + 0.5) * 0.5 - 0.5,
+            );
+            l1.intensity
+                .par_chunks_mut(w1)
+                .zip(l1.depth.par_chunks_mut(w1))
+                .enumerate()
+                .for_each(|(y, (irow, drow))| {
+                    let r0 = 2 * y * w;
+                    let r1 = r0 + w;
+                    for x in 0..w1 {
+                        let (a, b) = (r0 + 2 * x, r1 + 2 * x);
+                        irow[x] = 0.25 * (lum(a) + lum(a + 1) + lum(b) + lum(b + 1));
+                        drow[x] = block_depth([
+                            sane(depth[a]),
+                            sane(depth[a + 1]),
+                            sane(depth[b]),
+                            sane(depth[b + 1]),
+                        ]);
+                    }
+                });
+            levels.push(l1);
+        }
+        let valid_pixels = levels
+            .last()
+            .map(|l| l.depth.iter().filter(|&&z| z > 0.0).count())
+            .unwrap_or(0);
+        for l in levels.len()..nl {
             let next = levels[l - 1].half();
             levels.push(next);
         }
@@ -236,7 +296,7 @@ impl Frame {
         &self.intrinsics
     }
 
-    /// Number of pixels with valid depth at full resolution.
+    /// Number of pixels with valid depth at full (`finest_level == 0`) or half resolution.
     pub fn valid_pixels(&self) -> usize {
         self.valid_pixels
     }
@@ -247,7 +307,8 @@ impl Frame {
 }
 
 impl Reference {
-    /// Prepares a reference view from colour, depth, intrinsics and its pose `T_wr`.
+    /// Prepares a reference view from colour, depth, intrinsics and its pose `T_wr` (a
+    /// rotation off by up to 1e-2 is projected onto SO(3)).
     pub fn new(
         color: Color<'_>,
         depth: &[f32],
@@ -285,7 +346,7 @@ impl Reference {
         }
         Ok(Reference {
             frame,
-            pose: *pose,
+            pose: se3::orthonormalize(pose),
             igd,
             normals,
         })

@@ -25,8 +25,10 @@ pub mod se3;
 mod solve;
 
 pub use image::{Color, Frame, Reference};
+/// Re-exported so that users (and the Python bindings) need no direct nalgebra dependency.
+pub use nalgebra::Matrix4;
 
-use nalgebra::{Matrix4, Matrix6, SymmetricEigen, Vector6};
+use nalgebra::{Matrix6, SymmetricEigen, Vector6};
 
 use solve::{accumulate, Params, RefLevel, Sums};
 
@@ -214,6 +216,7 @@ pub fn track(
     let params = Params::new(config);
     let t_rw = se3::inverse(&reference.pose);
     // Relative pose of the frame in the reference camera; the unknown.
+    let init = &se3::orthonormalize(init);
     let mut t_rf = t_rw * init;
     let mut iterations = 0;
     let mut last = Sums::default();
@@ -429,7 +432,7 @@ impl Odometry {
             config,
             motion_prior,
             reference: None,
-            pose: *initial_pose,
+            pose: se3::orthonormalize(initial_pose),
             velocity: Matrix4::identity(),
             frames: 0,
             lost: 0,

@@ -112,12 +112,30 @@ pub fn validate_pose(t: &Matrix4<f64>, name: &str) -> Result<(), String> {
     }
     let r = rotation(t);
     let err = (r.transpose() * r - Matrix3::identity()).abs().max();
-    if err > 1e-3 || r.determinant() < 0.0 {
+    if err > 1e-2 || r.determinant() < 0.0 {
         return Err(format!(
             "{name} rotation must be orthonormal with det +1 (max |R^T R - I| = {err:.2e})"
         ));
     }
     Ok(())
+}
+
+/// The nearest rigid transform (rotation block projected onto SO(3) by SVD), for poses read
+/// at text precision.
+pub fn orthonormalize(t: &Matrix4<f64>) -> Matrix4<f64> {
+    let svd = rotation(t).svd(true, true);
+    match (svd.u, svd.v_t) {
+        (Some(u), Some(vt)) => {
+            let mut r = u * vt;
+            if r.determinant() < 0.0 {
+                let mut u2 = u;
+                u2.column_mut(2).neg_mut();
+                r = u2 * vt;
+            }
+            from_rt(&r, &translation(t))
+        }
+        _ => *t,
+    }
 }
 
 /// Rotation angle (radians) of a rigid transform.

@@ -65,10 +65,11 @@ impl Sums {
 }
 
 /// Row accumulator in f32 (one row is at most a few thousand terms), flushed into f64.
+/// Row `i` of `h` holds `sum w J_i [J, r, 0]`: the full 6x6 block plus `b` in column 6, laid
+/// out 8 wide so that the update vectorises.
 #[derive(Default)]
 struct RowAcc {
-    h: [f32; 21],
-    b: [f32; 6],
+    h: [[f32; 8]; 6],
     cost: f32,
     sq_geo: f32,
     sq_photo: f32,
@@ -78,23 +79,23 @@ struct RowAcc {
 impl RowAcc {
     #[inline(always)]
     fn add(&mut self, j: &[f32; 6], r: f32, w: f32) {
-        let mut k = 0;
-        for i in 0..6 {
-            let wj = w * j[i];
-            self.b[i] += wj * r;
-            for jj in j.iter().skip(i) {
-                self.h[k] += wj * jj;
-                k += 1;
+        let jr = [j[0], j[1], j[2], j[3], j[4], j[5], r, 0.0];
+        for (row, &ji) in self.h.iter_mut().zip(j.iter()) {
+            let a = w * ji;
+            for (hk, &jk) in row.iter_mut().zip(jr.iter()) {
+                *hk += a * jk;
             }
         }
     }
 
     fn flush(&mut self, s: &mut Sums) {
-        for (a, b) in s.h.iter_mut().zip(self.h.iter()) {
-            *a += *b as f64;
-        }
-        for (a, b) in s.b.iter_mut().zip(self.b.iter()) {
-            *a += *b as f64;
+        let mut k = 0;
+        for i in 0..6 {
+            for jj in i..6 {
+                s.h[k] += self.h[i][jj] as f64;
+                k += 1;
+            }
+            s.b[i] += self.h[i][6] as f64;
         }
         s.cost += self.cost as f64;
         s.sq_geo += self.sq_geo as f64;
@@ -231,7 +232,97 @@ pub(crate) fn eval_point(
     out
 }
 
+/// Sums over the rows of chunk `c`.
+#[inline(always)]
+fn accumulate_chunk(
+    r: &RefLevel<'_>,
+    f: &Level,
+    rot: &[[f32; 3]; 3],
+    t: &[f32; 3],
+    p: &Params,
+    c: usize,
+) -> Sums {
+    let mut s = Sums::default();
+    let mut acc = RowAcc::default();
+    let y1 = ((c + 1) * ROWS_PER_CHUNK).min(f.h);
+    for y in c * ROWS_PER_CHUNK..y1 {
+        let o = y * f.w;
+        for x in 0..f.w {
+            let z = f.depth[o + x];
+            if z <= 0.0 {
+                continue;
+            }
+            s.n_valid += 1;
+            let xf = f.point(x, y, z);
+            let res = eval_point(r, &xf, f.intensity[o + x], rot, t, p);
+            if let Some((rg, j, depth)) = res.geo {
+                let s_n = (rg * p.inv_huber_g).abs();
+                let (w, rho) = if s_n <= 1.0 {
+                    (1.0, 0.5 * s_n * s_n)
+                } else {
+                    (1.0 / s_n, s_n - 0.5)
+                };
+                acc.add(&j, rg, w * p.inv_huber_g * p.inv_huber_g);
+                acc.cost += rho;
+                acc.depth_sum += depth;
+                s.n_geo += 1;
+                if rg.abs() <= p.inlier_threshold {
+                    s.n_inlier += 1;
+                    acc.sq_geo += rg * rg;
+                }
+            }
+            if let Some((rp, j)) = res.photo {
+                let s_n = (rp * p.inv_huber_p).abs();
+                let (w, rho) = if s_n <= 1.0 {
+                    (1.0, 0.5 * s_n * s_n)
+                } else {
+                    (1.0 / s_n, s_n - 0.5)
+                };
+                acc.add(&j, rp, p.photo_weight * w * p.inv_huber_p * p.inv_huber_p);
+                acc.cost += p.photo_weight * rho;
+                acc.sq_photo += rp * rp;
+                s.n_photo += 1;
+            }
+        }
+        acc.flush(&mut s);
+    }
+    s
+}
+
+/// [`accumulate_chunk`] compiled for AVX2 + FMA (the 8-wide row updates become single
+/// instructions).
+///
+/// # Safety
+/// The CPU must support AVX2 and FMA.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn accumulate_chunk_avx2(
+    r: &RefLevel<'_>,
+    f: &Level,
+    rot: &[[f32; 3]; 3],
+    t: &[f32; 3],
+    p: &Params,
+    c: usize,
+) -> Sums {
+    accumulate_chunk(r, f, rot, t, p, c)
+}
+
+fn has_avx2_fma() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
 /// One pass over the frame level: the normal equations at `T_rf = (rot, t)`.
+///
+/// Rows are split into fixed chunks, each summed sequentially, and the chunk sums are added
+/// in order, so the result is bitwise identical for any number of threads (on a given CPU:
+/// the AVX2/FMA path rounds differently from the portable one).
 pub(crate) fn accumulate(
     r: &RefLevel<'_>,
     f: &Level,
@@ -240,54 +331,17 @@ pub(crate) fn accumulate(
     p: &Params,
 ) -> Sums {
     let n_chunks = f.h.div_ceil(ROWS_PER_CHUNK);
+    let avx2 = has_avx2_fma();
     let parts: Vec<Sums> = (0..n_chunks)
         .into_par_iter()
         .map(|c| {
-            let mut s = Sums::default();
-            let mut acc = RowAcc::default();
-            let y1 = ((c + 1) * ROWS_PER_CHUNK).min(f.h);
-            for y in c * ROWS_PER_CHUNK..y1 {
-                let o = y * f.w;
-                for x in 0..f.w {
-                    let z = f.depth[o + x];
-                    if z <= 0.0 {
-                        continue;
-                    }
-                    s.n_valid += 1;
-                    let xf = f.point(x, y, z);
-                    let res = eval_point(r, &xf, f.intensity[o + x], rot, t, p);
-                    if let Some((rg, j, depth)) = res.geo {
-                        let s_n = (rg * p.inv_huber_g).abs();
-                        let (w, rho) = if s_n <= 1.0 {
-                            (1.0, 0.5 * s_n * s_n)
-                        } else {
-                            (1.0 / s_n, s_n - 0.5)
-                        };
-                        acc.add(&j, rg, w * p.inv_huber_g * p.inv_huber_g);
-                        acc.cost += rho;
-                        acc.depth_sum += depth;
-                        s.n_geo += 1;
-                        if rg.abs() <= p.inlier_threshold {
-                            s.n_inlier += 1;
-                            acc.sq_geo += rg * rg;
-                        }
-                    }
-                    if let Some((rp, j)) = res.photo {
-                        let s_n = (rp * p.inv_huber_p).abs();
-                        let (w, rho) = if s_n <= 1.0 {
-                            (1.0, 0.5 * s_n * s_n)
-                        } else {
-                            (1.0 / s_n, s_n - 0.5)
-                        };
-                        acc.add(&j, rp, p.photo_weight * w * p.inv_huber_p * p.inv_huber_p);
-                        acc.cost += p.photo_weight * rho;
-                        acc.sq_photo += rp * rp;
-                        s.n_photo += 1;
-                    }
-                }
-                acc.flush(&mut s);
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the CPU supports AVX2 and FMA (checked above).
+                return unsafe { accumulate_chunk_avx2(r, f, rot, t, p, c) };
             }
-            s
+            let _ = avx2;
+            accumulate_chunk(r, f, rot, t, p, c)
         })
         .collect();
     let mut total = Sums::default();

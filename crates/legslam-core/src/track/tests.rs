@@ -380,3 +380,83 @@ fn track_odometry_follows_a_synthetic_path() {
     assert_eq!(odo.lost_frames(), 0);
     assert_eq!(odo.frames(), 6);
 }
+
+/// Process CPU time (user + system, all threads) in ms, from /proc (Linux; 0 elsewhere).
+fn cpu_ms() -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let after = stat.rsplit(')').next().unwrap_or("");
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    // Fields 14 and 15 (utime, stime) are at 11 and 12 after the command name; 100 Hz.
+    (ticks(11) + ticks(12)) * 10.0
+}
+
+/// Timing of the stages on a 640x480 synthetic view (run with `--ignored --nocapture`);
+/// wall and CPU time per call, since the machine may be shared. Speed is measured here and
+/// in benches/bench_tracking.py, never asserted.
+#[test]
+#[ignore]
+fn track_timing_breakdown() {
+    use std::time::Instant;
+    let k = Intrinsics {
+        fx: 585.0,
+        fy: 585.0,
+        cx: 319.5,
+        cy: 239.5,
+        width: 640,
+        height: 480,
+    };
+    let cfg = TrackerConfig::default();
+    let t_wr = pose_of([0.0; 6]);
+    let t_wf = pose_of([0.01, 0.0, 0.01, 0.0, 0.01, 0.0]);
+    let (rgb_r, d_r) = render(&t_wr, &k);
+    let (rgb_f, d_f) = render(&t_wf, &k);
+    let rgb8: Vec<u8> = rgb_f.iter().map(|v| (v * 255.0) as u8).collect();
+    let n = 100;
+    let time = |name: &str, f: &mut dyn FnMut()| {
+        let (t0, c0) = (Instant::now(), cpu_ms());
+        for _ in 0..n {
+            f();
+        }
+        let wall = t0.elapsed().as_secs_f64() * 1e3 / n as f64;
+        let cpu = (cpu_ms() - c0) / n as f64;
+        println!("{name:<28} wall {wall:7.3} ms   cpu {cpu:7.3} ms");
+    };
+    let f = Frame::new(Color::Rgb8(&rgb8), &d_f, &k, &cfg).unwrap();
+    let r0 = Frame::new(Color::RgbF32(&rgb_r), &d_r, &k, &cfg).unwrap();
+    let r = Reference::from_frame(r0.clone(), &t_wr, &cfg).unwrap();
+    time("frame prep", &mut || {
+        std::hint::black_box(Frame::new(Color::Rgb8(&rgb8), &d_f, &k, &cfg).unwrap());
+    });
+    time("clone frame", &mut || {
+        std::hint::black_box(r0.clone());
+    });
+    time("reference prep (+clone)", &mut || {
+        std::hint::black_box(Reference::from_frame(r0.clone(), &t_wr, &cfg).unwrap());
+    });
+    let p = Params::new(&cfg);
+    let (rot, t) = to_f32(&(se3::inverse(&t_wr) * t_wf));
+    for l in 0..4 {
+        let rl = RefLevel {
+            lev: &r.frame.levels[l],
+            igd: &r.igd[l],
+            normals: &r.normals[l],
+        };
+        if rl.igd.is_empty() {
+            continue;
+        }
+        time(&format!("accumulate level {l}"), &mut || {
+            std::hint::black_box(solve::accumulate(&rl, &f.levels[l], &rot, &t, &p));
+        });
+        let pg = Params {
+            photo_weight: 0.0,
+            ..p
+        };
+        time(&format!("  geometric only {l}"), &mut || {
+            std::hint::black_box(solve::accumulate(&rl, &f.levels[l], &rot, &t, &pg));
+        });
+    }
+    time("track", &mut || {
+        std::hint::black_box(track(&r, &f, &t_wr, &cfg).unwrap());
+    });
+}
