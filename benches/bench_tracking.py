@@ -106,6 +106,38 @@ def ate_rmse(gt, est):
         return _umeyama_ate(gt, est)
 
 
+def write_tum(path, stamps, poses):
+    try:
+        from legslam.eval import write_tum as f
+
+        return f(path, stamps, poses)
+    except ImportError:
+        pass
+    with open(path, "w") as fh:
+        for t, p in zip(stamps, poses):
+            q = _quat_xyzw(np.asarray(p)[:3, :3])
+            x, y, z = np.asarray(p)[:3, 3]
+            fh.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} {q[0]:.6f} {q[1]:.6f} {q[2]:.6f} {q[3]:.6f}\n")
+
+
+def _quat_xyzw(r):
+    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
+    t = np.trace(r)
+    if t > 0:
+        s = np.sqrt(t + 1.0) * 2
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(r)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k]) * 2
+        q = [0.0, 0.0, 0.0, (r[k, j] - r[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (r[j, i] + r[i, j]) / s
+        q[k] = (r[k, i] + r[i, k]) / s
+    q = np.array(q)
+    return q / np.linalg.norm(q)
+
+
 # ---------------------------------------------------------------------------------------------
 # Methods
 
@@ -187,6 +219,8 @@ def main(argv=None):
     ap.add_argument("--config", action="append", default=[], metavar="K=V,K=V",
                     help="an extra legslam row with these tracker options "
                          "(lists with '/', e.g. iterations=2/4/8); repeatable")
+    ap.add_argument("--out", default=None, metavar="DIR",
+                    help="write each method's trajectory (TUM format) and the GT into DIR")
     ap.add_argument("--threads", type=int, default=None,
                     help="RAYON_NUM_THREADS for our engine (default: all cores)")
     args = ap.parse_args(argv)
@@ -232,9 +266,16 @@ def main(argv=None):
             print("open3d not installed: its row is skipped (pip install open3d)")
 
     rows = []
+    stamps = [f.timestamp for f in frames]
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+        write_tum(os.path.join(args.out, "groundtruth.txt"), stamps, gt)
     for run in runs:
         label, poses, times, lost = run()
         ate = ate_rmse(gt, poses)
+        if args.out:
+            name = "".join(c if c.isalnum() or c in "=._-" else "_" for c in label)
+            write_tum(os.path.join(args.out, name + ".txt"), stamps, poses)
         rows.append((label, ate, statistics.median(times), statistics.fmean(times), lost))
         print(f"  done: {label}", flush=True)
 

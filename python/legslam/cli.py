@@ -9,7 +9,9 @@ import importlib
 import sys
 
 # subcommand -> (module, one-line help)
-COMMANDS = {}
+COMMANDS = {
+    "odometry": ("legslam.odometry", "frame-to-frame RGB-D odometry over a sequence"),
+}
 
 
 class UserError(Exception):
