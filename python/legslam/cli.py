@@ -12,6 +12,7 @@ import sys
 COMMANDS = {
     "models": ("legslam.models", "fetch the default image encoder into the cache, or list cached models"),
     "export-models": ("legslam.features.export", "export DINOv2 ViT-B/14-reg and CLIP ViT-B/16 text to ONNX (needs torch)"),
+    "odometry": ("legslam.odometry", "frame-to-frame RGB-D odometry over a sequence"),
 }
 
 

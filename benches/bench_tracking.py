@@ -1,0 +1,290 @@
+"""Tracking benchmark: frame-to-frame RGB-D odometry on a 7-Scenes sequence, legslam's tracker
+side by side with Open3D's RGB-D odometry (hybrid term) on the same frames in the same run.
+
+Prints, per method: ATE RMSE (SE(3) Umeyama alignment, as `evo_ape --align` computes it),
+median and mean ms per frame, and lost frames.
+
+    python benches/bench_tracking.py [PATH] [--max-frames N] [--variants] [--no-open3d]
+
+PATH defaults to ../shared/data/7scenes_tsdf_fusion/data (relative to the repository root).
+Open3D (`pip install open3d`) is a benchmark-only dependency; without it its row is skipped.
+Timing covers everything from the decoded frame to the pose (pyramid construction included),
+excluding JPEG/PNG decoding, which is shared by both methods.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import statistics
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEFAULT_PATH = os.path.join(ROOT, "..", "shared", "data", "7scenes_tsdf_fusion", "data")
+
+
+# ---------------------------------------------------------------------------------------------
+# Data: the project's loaders when available, else a minimal private 7-Scenes reader.
+
+
+class _Frame:
+    def __init__(self, rgb, depth, K, pose, timestamp, index):
+        self.rgb, self.depth, self.K, self.pose = rgb, depth, K, pose
+        self.timestamp, self.index = timestamp, index
+
+
+class _SevenScenes:
+    """Minimal 7-Scenes folder reader (frame-XXXXXX.{color.jpg,depth.png,pose.txt})."""
+
+    def __init__(self, path, max_frames=None):
+        import cv2  # noqa: F401
+
+        self.colors = sorted(glob.glob(os.path.join(path, "frame-*.color.*")))
+        if max_frames:
+            self.colors = self.colors[:max_frames]
+        self.K = np.loadtxt(os.path.join(path, "camera-intrinsics.txt")).reshape(3, 3)
+
+    def __len__(self):
+        return len(self.colors)
+
+    def __getitem__(self, i):
+        import cv2
+
+        c = self.colors[i]
+        stem = c[: c.index(".color.")]
+        bgr = cv2.imread(c, cv2.IMREAD_COLOR)
+        rgb = np.ascontiguousarray(bgr[:, :, ::-1])
+        raw = cv2.imread(stem + ".depth.png", cv2.IMREAD_UNCHANGED)
+        depth = raw.astype(np.float32) / 1000.0
+        depth[raw == 65535] = 0.0
+        pose = np.loadtxt(stem + ".pose.txt").reshape(4, 4)
+        return _Frame(rgb, depth, self.K.copy(), pose, float(i), i)
+
+
+def open_sequence(path, max_frames=None, stride=1):
+    try:
+        from legslam import datasets  # the project's loaders, once merged
+
+        return datasets.open(path, stride=stride, max_frames=max_frames), "legslam.datasets"
+    except ImportError:
+        if stride != 1:
+            raise SystemExit("--stride needs legslam.datasets")
+        return _SevenScenes(path, max_frames), "private 7-Scenes reader"
+
+
+# ---------------------------------------------------------------------------------------------
+# ATE
+
+
+def _umeyama_ate(gt, est):
+    """RMSE of translations after the least-squares SE(3) alignment of est to gt (Umeyama,
+    no scale), as evo's `--align`."""
+    p = np.array([e[:3, 3] for e in est])
+    q = np.array([g[:3, 3] for g in gt])
+    mp, mq = p.mean(0), q.mean(0)
+    cov = (q - mq).T @ (p - mp) / len(p)
+    u, _, vt = np.linalg.svd(cov)
+    s = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[2, 2] = -1
+    r = u @ s @ vt
+    t = mq - r @ mp
+    err = q - (p @ r.T + t)
+    return float(np.sqrt((err**2).sum(1).mean()))
+
+
+def ate_rmse(gt, est):
+    try:
+        from legslam.eval import ate_rmse as f
+
+        return float(f(np.asarray(gt), np.asarray(est)))
+    except ImportError:
+        return _umeyama_ate(gt, est)
+
+
+def write_tum(path, stamps, poses):
+    try:
+        from legslam.eval import write_tum as f
+
+        return f(path, stamps, poses)
+    except ImportError:
+        pass
+    with open(path, "w") as fh:
+        for t, p in zip(stamps, poses):
+            q = _quat_xyzw(np.asarray(p)[:3, :3])
+            x, y, z = np.asarray(p)[:3, 3]
+            fh.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} {q[0]:.6f} {q[1]:.6f} {q[2]:.6f} {q[3]:.6f}\n")
+
+
+def _quat_xyzw(r):
+    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
+    t = np.trace(r)
+    if t > 0:
+        s = np.sqrt(t + 1.0) * 2
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(r)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k]) * 2
+        q = [0.0, 0.0, 0.0, (r[k, j] - r[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (r[j, i] + r[i, j]) / s
+        q[k] = (r[k, i] + r[i, k]) / s
+    q = np.array(q)
+    return q / np.linalg.norm(q)
+
+
+# ---------------------------------------------------------------------------------------------
+# Methods
+
+
+def run_legslam(frames, label, **config):
+    from legslam.tracking import Odometry
+
+    odo = Odometry(initial_pose=frames[0].pose, **config)
+    poses, times = [], []
+    for f in frames:
+        t0 = time.perf_counter()
+        step = odo.step(f.rgb, f.depth, f.K)
+        times.append((time.perf_counter() - t0) * 1e3)
+        poses.append(step.pose)
+    return label, poses, times[1:], odo.lost_frames
+
+
+def run_open3d(frames):
+    import open3d as o3d
+
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    h, w = frames[0].depth.shape
+    K = frames[0].K
+    intr = o3d.camera.PinholeCameraIntrinsic(w, h, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    option = o3d.pipelines.odometry.OdometryOption()
+    jac = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+
+    def rgbd(f):
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(f.rgb), o3d.geometry.Image(f.depth),
+            depth_scale=1.0, depth_trunc=option.depth_max, convert_rgb_to_intensity=True,
+        )
+
+    pose = frames[0].pose.copy()
+    poses, times, lost = [pose.copy()], [], 0
+    prev = rgbd(frames[0])
+    for f in frames[1:]:
+        t0 = time.perf_counter()
+        cur = rgbd(f)
+        # Open3D returns the transform mapping source (current) points into the target
+        # (previous) camera: T_prev_cur.
+        ok, T, _ = o3d.pipelines.odometry.compute_rgbd_odometry(
+            cur, prev, intr, np.eye(4), jac, option
+        )
+        times.append((time.perf_counter() - t0) * 1e3)
+        if ok:
+            pose = pose @ T
+        else:
+            lost += 1
+        poses.append(pose.copy())
+        prev = cur
+    return "open3d hybrid (default option)", poses, times, lost
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def _parse_config(spec):
+    opts = {}
+    for item in spec.split(","):
+        k, v = item.split("=")
+        if "/" in v:
+            opts[k] = [int(x) for x in v.split("/")]
+        else:
+            try:
+                opts[k] = int(v)
+            except ValueError:
+                opts[k] = float(v)
+    return opts
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("path", nargs="?", default=DEFAULT_PATH)
+    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--variants", action="store_true",
+                    help="also run our config variants (finest level 0 / 2, no photometric)")
+    ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--config", action="append", default=[], metavar="K=V,K=V",
+                    help="an extra legslam row with these tracker options "
+                         "(lists with '/', e.g. iterations=2/4/8); repeatable")
+    ap.add_argument("--out", default=None, metavar="DIR",
+                    help="write each method's trajectory (TUM format) and the GT into DIR")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="RAYON_NUM_THREADS for our engine (default: all cores)")
+    args = ap.parse_args(argv)
+    if args.threads:
+        os.environ["RAYON_NUM_THREADS"] = str(args.threads)
+    if not os.path.isdir(args.path):
+        print(f"no data at {args.path}", file=sys.stderr)
+        return 2
+
+    seq, loader = open_sequence(args.path, args.max_frames)
+    t0 = time.perf_counter()
+    frames = [seq[i] for i in range(len(seq))]
+    print(f"{len(frames)} frames {frames[0].depth.shape[1]}x{frames[0].depth.shape[0]} from "
+          f"{args.path} ({loader}, decoded in {time.perf_counter() - t0:.1f} s)")
+    gt = [f.pose for f in frames]
+    if any(p is None for p in gt):
+        print("sequence has no ground-truth poses", file=sys.stderr)
+        return 2
+    try:
+        load = os.getloadavg()[0]
+        print(f"cpu cores {os.cpu_count()}, load average {load:.2f} at start")
+    except OSError:
+        pass
+
+    runs = [lambda: run_legslam(frames, "legslam (default: levels 1-3)")]
+    if args.variants:
+        runs += [
+            lambda: run_legslam(frames, "legslam finest_level=0", finest_level=0, levels=4,
+                                iterations=[3, 4, 6, 10]),
+            lambda: run_legslam(frames, "legslam finest_level=2", finest_level=2, levels=2,
+                                iterations=[8, 10]),
+            lambda: run_legslam(frames, "legslam geometric only", photometric_weight=0.0),
+        ]
+    for spec in args.config:
+        opts = _parse_config(spec)
+        runs.append(lambda spec=spec, opts=opts: run_legslam(frames, f"legslam {spec}", **opts))
+    if not args.no_open3d:
+        try:
+            import open3d  # noqa: F401
+
+            runs.append(lambda: run_open3d(frames))
+        except ImportError:
+            print("open3d not installed: its row is skipped (pip install open3d)")
+
+    rows = []
+    stamps = [f.timestamp for f in frames]
+    if args.out:
+        os.makedirs(args.out, exist_ok=True)
+        write_tum(os.path.join(args.out, "groundtruth.txt"), stamps, gt)
+    for run in runs:
+        label, poses, times, lost = run()
+        ate = ate_rmse(gt, poses)
+        if args.out:
+            name = "".join(c if c.isalnum() or c in "=._-" else "_" for c in label)
+            write_tum(os.path.join(args.out, name + ".txt"), stamps, poses)
+        rows.append((label, ate, statistics.median(times), statistics.fmean(times), lost))
+        print(f"  done: {label}", flush=True)
+
+    print()
+    print(f"{'method':<34} {'ATE RMSE [cm]':>13} {'median ms':>10} {'mean ms':>8} {'lost':>5}")
+    for label, ate, med, mean, lost in rows:
+        print(f"{label:<34} {ate * 100:>13.2f} {med:>10.2f} {mean:>8.2f} {lost:>5}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,149 @@
+"""`legslam odometry PATH --out traj.txt`: frame-to-frame RGB-D odometry over a sequence.
+
+Each frame is tracked against the previous one (dense point-to-plane + photometric alignment
+in the engine) from a constant-velocity prediction. The trajectory is written in TUM format
+(`t tx ty tz qx qy qz qw`, camera-to-world), one pose per frame; a frame whose alignment is
+"lost" keeps the prediction and is counted. Progress goes to stderr; the ATE against the
+ground truth is printed at the end when the sequence has one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import numpy as np
+
+from legslam.cli import UserError
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", help="sequence folder or file the dataset loaders read")
+    p.add_argument("--out", required=True, help="output trajectory (TUM format)")
+    p.add_argument("--format", default="auto", help="dataset format (default: auto-detect)")
+    p.add_argument("--stride", type=int, default=1, help="use every N-th frame")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    p.add_argument("--downscale", type=int, default=1,
+                   help="downscale images by this integer factor on load")
+    p.add_argument("--finest-level", type=int, default=None,
+                   help="finest pyramid level used by the tracker (0 = full resolution)")
+    p.add_argument("--levels", type=int, default=None, help="pyramid levels used")
+    p.add_argument("--no-motion-prior", action="store_true",
+                   help="start each alignment from the previous pose, not a "
+                        "constant-velocity prediction")
+    p.add_argument("--identity-start", action="store_true",
+                   help="start at the identity even if the first frame has a GT pose")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def _write_tum(path: str, stamps, poses) -> None:
+    try:
+        from legslam.eval import write_tum
+    except ImportError:  # the evaluation module is optional for this command
+        write_tum = _write_tum_local
+    write_tum(path, stamps, poses)
+
+
+def _write_tum_local(path: str, stamps, poses) -> None:
+    with open(path, "w") as fh:
+        for t, p in zip(stamps, poses):
+            q = _quat_xyzw(np.asarray(p, dtype=np.float64)[:3, :3])
+            x, y, z = np.asarray(p)[:3, 3]
+            fh.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} "
+                     f"{q[0]:.6f} {q[1]:.6f} {q[2]:.6f} {q[3]:.6f}\n")
+
+
+def _quat_xyzw(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a rotation matrix."""
+    t = np.trace(r)
+    if t > 0:
+        s = np.sqrt(t + 1.0) * 2
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(r)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k]) * 2
+        q = [0.0, 0.0, 0.0, (r[k, j] - r[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (r[j, i] + r[i, j]) / s
+        q[k] = (r[k, i] + r[i, k]) / s
+    q = np.asarray(q)
+    return q / np.linalg.norm(q)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        from legslam import datasets
+    except ImportError as e:
+        raise UserError(f"the dataset loaders (legslam.datasets) are not available: {e}")
+    from legslam.tracking import Odometry
+
+    for name in ("stride", "downscale"):
+        if getattr(args, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise UserError("--max-frames must be >= 1")
+    try:
+        seq = datasets.open(args.path, format=args.format, stride=args.stride,
+                            max_frames=args.max_frames, downscale=args.downscale)
+    except (FileNotFoundError, NotADirectoryError, ValueError) as e:
+        raise UserError(f"cannot read {args.path}: {e}")
+    n = len(seq)
+    if n == 0:
+        raise UserError(f"no frames in {args.path}")
+
+    config = {}
+    if args.finest_level is not None:
+        config["finest_level"] = args.finest_level
+    if args.levels is not None:
+        config["levels"] = args.levels
+        config["iterations"] = [4] * args.levels
+    first = seq[0]
+    start = first.pose if (first.pose is not None and not args.identity_start) else np.eye(4)
+    try:
+        odo = Odometry(initial_pose=start, motion_prior=not args.no_motion_prior, **config)
+    except ValueError as e:
+        raise UserError(str(e))
+
+    stamps, poses, gt, times = [], [], [], []
+    lost = 0
+    progress = not args.quiet
+    tty = sys.stderr.isatty()
+    t_start = time.perf_counter()
+    for i in range(n):
+        f = first if i == 0 else seq[i]
+        t0 = time.perf_counter()
+        try:
+            step = odo.step(f.rgb, f.depth, f.K)
+        except ValueError as e:
+            raise UserError(f"frame {i}: {e}")
+        dt = (time.perf_counter() - t0) * 1e3
+        if i > 0:
+            times.append(dt)
+        if step.lost:
+            lost += 1
+        stamps.append(f.timestamp)
+        poses.append(step.pose)
+        gt.append(f.pose)
+        if progress and (tty or (i + 1) % 100 == 0 or i + 1 == n):
+            med = statistics.median(times) if times else dt
+            msg = f"frame {i + 1}/{n}  {dt:6.1f} ms  (median {med:.1f} ms/frame)  lost {lost}"
+            print(("\r" + msg) if tty else msg, end="" if tty and i + 1 < n else "\n",
+                  file=sys.stderr, flush=True)
+
+    _write_tum(args.out, stamps, poses)
+    total = time.perf_counter() - t_start
+    med = statistics.median(times) if times else float("nan")
+    print(f"{n} frames in {total:.1f} s, median {med:.1f} ms/frame (tracking only), "
+          f"{lost} lost; trajectory written to {args.out}")
+    if all(p is not None for p in gt) and n > 2:
+        try:
+            from legslam.eval import ate_rmse
+        except ImportError:
+            print("ATE not computed: legslam.eval is not available", file=sys.stderr)
+        else:
+            ate = float(ate_rmse(np.asarray(gt), np.asarray(poses)))
+            print(f"ATE RMSE (SE(3)-aligned): {ate * 100:.2f} cm")
+    return 0
