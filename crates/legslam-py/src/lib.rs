@@ -3,11 +3,13 @@
 
 use pyo3::prelude::*;
 
+mod map;
 mod raster;
 mod track;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    map::register(m)?;
     raster::register(m)?;
     track::register(m)?;
     Ok(())

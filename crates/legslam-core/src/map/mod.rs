@@ -7,7 +7,9 @@ pub mod grow;
 pub mod keyframe;
 pub mod prune;
 pub mod store;
+pub mod train;
 
 pub use features::FeatureGrid;
 pub use keyframe::{Keyframe, Level};
 pub use store::{GaussianMap, NewGaussian};
+pub use train::{Mapper, MapperConfig, TrainReport};

@@ -1,0 +1,471 @@
+//! The mapper: owns the map, its optimiser and the keyframes, and trains the map against
+//! keyframes drawn in random order from a window of recent ones, each coarse-to-fine through
+//! its image pyramid (as LEG-SLAM does), with periodic densification and pruning.
+
+use std::time::Instant;
+
+use super::densify::{densify, DensifyConfig, GradStats};
+use super::grow::{assign_features, grow, GrowConfig, RenderedView};
+use super::prune::{keep_mask, PruneConfig};
+use super::{FeatureGrid, GaussianMap, Keyframe};
+use crate::camera::{invert_rigid, Intrinsics, Pose};
+use crate::loss::{
+    DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
+};
+use crate::optim::{normalize_quats, Adam, AdamConfig, Groups};
+use crate::raster::{backward, render, Camera, ImageGrads, RenderOptions, Rendered};
+use crate::rng::Rng;
+use crate::Real;
+
+#[derive(Clone, Debug)]
+pub struct MapperConfig {
+    /// Pyramid levels per keyframe (3: full, 1/2, 1/4 resolution).
+    pub levels: usize,
+    /// The finest level trained (0 = full resolution, 1 = half: a CPU's budget).
+    pub finest_level: usize,
+    /// A keyframe's first `uses_per_level` uses are at the coarsest level, the next at the
+    /// level below, and so on down to `finest_level`.
+    pub uses_per_level: usize,
+    /// Keyframes drawn from: the most recent this many.
+    pub window: usize,
+    /// Pyramid level at which a new keyframe's depth seeds new Gaussians.
+    pub grow_level: usize,
+    pub sh_degree: usize,
+    pub num_features: usize,
+    pub loss: LossWeights,
+    pub adam: AdamConfig,
+    pub grow: GrowConfig,
+    pub prune: PruneConfig,
+    pub densify: DensifyConfig,
+    pub seed: u64,
+}
+
+impl Default for MapperConfig {
+    fn default() -> Self {
+        MapperConfig {
+            levels: 3,
+            finest_level: 1,
+            uses_per_level: 2,
+            window: 10,
+            grow_level: 1,
+            sh_degree: 0,
+            num_features: 0,
+            loss: LossWeights::default(),
+            adam: AdamConfig::default(),
+            grow: GrowConfig {
+                stride: 1,
+                ..Default::default()
+            },
+            prune: PruneConfig::default(),
+            densify: DensifyConfig::default(),
+            seed: 0,
+        }
+    }
+}
+
+/// What `train` did.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct TrainReport {
+    pub iterations: usize,
+    /// Loss terms of the last iteration.
+    pub last: LossTerms,
+    pub cloned: usize,
+    pub split: usize,
+    pub pruned: usize,
+    /// Seconds spent rendering, in the loss, in the backward pass, and in the optimiser.
+    pub render_s: f64,
+    pub loss_s: f64,
+    pub backward_s: f64,
+    pub step_s: f64,
+}
+
+pub struct Mapper {
+    pub config: MapperConfig,
+    pub map: GaussianMap,
+    pub keyframes: Vec<Keyframe>,
+    adam: Adam,
+    loss: Loss,
+    queue: Vec<usize>,
+    rng: Rng,
+    stats: GradStats,
+    iteration: usize,
+}
+
+fn camera(pose: &Pose, intr: Intrinsics) -> Result<Camera, String> {
+    Camera::new(intr, &invert_rigid(pose))
+}
+
+impl Mapper {
+    pub fn new(config: MapperConfig) -> Result<Self, String> {
+        if config.sh_degree > 3 {
+            return Err(format!("sh_degree must be 0-3, got {}", config.sh_degree));
+        }
+        if config.finest_level >= config.levels.max(1) || config.grow_level >= config.levels.max(1)
+        {
+            return Err(format!(
+                "finest_level ({}) and grow_level ({}) must be below levels ({})",
+                config.finest_level, config.grow_level, config.levels
+            ));
+        }
+        let coeffs = crate::raster::sh::num_coeffs(config.sh_degree);
+        let adam = Adam::new(config.adam, 0, coeffs, config.num_features)?;
+        Ok(Mapper {
+            map: GaussianMap::new(coeffs, config.num_features),
+            keyframes: Vec::new(),
+            adam,
+            loss: Loss::new(config.loss),
+            queue: Vec::new(),
+            rng: Rng::new(config.seed),
+            stats: GradStats::default(),
+            iteration: 0,
+            config,
+        })
+    }
+
+    fn options(&self, color: bool, features: bool) -> RenderOptions {
+        RenderOptions {
+            sh_degree: self.config.sh_degree,
+            color,
+            depth: true,
+            alpha: true,
+            features,
+            ..Default::default()
+        }
+    }
+
+    /// Renders the map from a camera-to-world pose.
+    pub fn render(
+        &self,
+        pose: &Pose,
+        intr: Intrinsics,
+        features: bool,
+    ) -> Result<Rendered, String> {
+        let opts = self.options(true, features && self.map.num_features > 0);
+        render(&self.map.view(), &camera(pose, intr)?, &opts)
+    }
+
+    /// Adds a keyframe (colour [h, w, 3] in [0, 1], depth [h, w] metres, camera-to-world
+    /// pose) and grows the map where it does not yet explain the keyframe's depth. Returns the
+    /// keyframe's id and the number of Gaussians added.
+    pub fn add_keyframe(
+        &mut self,
+        rgb: Vec<Real>,
+        depth: Vec<Real>,
+        intr: Intrinsics,
+        pose: Pose,
+    ) -> Result<(u32, usize), String> {
+        let id = self.keyframes.len() as u32;
+        let kf = Keyframe::new(id, rgb, depth, intr, pose, self.config.levels)?;
+        let level = &kf.levels[self.config.grow_level.min(kf.levels.len() - 1)];
+        let rendered = if self.map.is_empty() {
+            None
+        } else {
+            let opts = self.options(false, false);
+            Some(render(
+                &self.map.view(),
+                &camera(&pose, level.intrinsics)?,
+                &opts,
+            )?)
+        };
+        let view = rendered.as_ref().map(|r| RenderedView {
+            alpha: &r.alpha,
+            depth: &r.depth,
+        });
+        let added = grow(
+            &mut self.map,
+            level,
+            &pose,
+            view,
+            None,
+            id,
+            &self.config.grow,
+        );
+        self.adam.append(added);
+        self.keyframes.push(kf);
+        self.update_extent();
+        Ok((id, added))
+    }
+
+    /// Sets a keyframe's feature target (its compressed patch grid) and gives the Gaussians it
+    /// created their initial features.
+    pub fn set_features(&mut self, id: u32, grid: FeatureGrid) -> Result<(), String> {
+        if grid.k != self.map.num_features {
+            return Err(format!(
+                "the map holds {} feature channels, the grid has {}",
+                self.map.num_features, grid.k
+            ));
+        }
+        let kf = self
+            .keyframes
+            .get_mut(id as usize)
+            .ok_or_else(|| format!("no keyframe {id}"))?;
+        let level = &kf.levels[self.config.grow_level.min(kf.levels.len() - 1)];
+        assign_features(&mut self.map, level, &kf.pose, id, &grid);
+        kf.features = Some(grid);
+        Ok(())
+    }
+
+    /// Scene extent for learning rates and size limits: the spread of keyframe centres, at
+    /// least the median depth of the first keyframe.
+    fn update_extent(&mut self) {
+        let centres: Vec<[f64; 3]> = self
+            .keyframes
+            .iter()
+            .map(|k| [k.pose[0][3], k.pose[1][3], k.pose[2][3]])
+            .collect();
+        let n = centres.len() as f64;
+        let mean = [0, 1, 2].map(|a| centres.iter().map(|c| c[a]).sum::<f64>() / n);
+        let spread = centres
+            .iter()
+            .map(|c| (0..3).map(|a| (c[a] - mean[a]).powi(2)).sum::<f64>().sqrt())
+            .fold(0.0, f64::max);
+        let mut depths: Vec<Real> = self.keyframes[0].levels[0]
+            .depth
+            .iter()
+            .copied()
+            .filter(|d| *d > 0.0)
+            .collect();
+        let median = if depths.is_empty() {
+            1.0
+        } else {
+            let m = depths.len() / 2;
+            *depths.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1 as f64
+        };
+        self.adam.config.scene_extent = (1.1 * spread).max(median) as Real;
+    }
+
+    pub fn extent(&self) -> Real {
+        self.adam.config.scene_extent
+    }
+
+    /// The next keyframe to train on: a shuffled pass over the window.
+    fn next_keyframe(&mut self) -> usize {
+        if self.queue.is_empty() {
+            let n = self.keyframes.len();
+            self.queue = (n.saturating_sub(self.config.window)..n).collect();
+            self.rng.shuffle(&mut self.queue);
+        }
+        self.queue.pop().unwrap()
+    }
+
+    /// Runs `iterations` mapping iterations.
+    pub fn train(&mut self, iterations: usize) -> Result<TrainReport, String> {
+        let mut report = TrainReport::default();
+        if self.keyframes.is_empty() || self.map.is_empty() {
+            return Ok(report);
+        }
+        for _ in 0..iterations {
+            self.iterate(&mut report)?;
+            report.iterations += 1;
+        }
+        Ok(report)
+    }
+
+    fn iterate(&mut self, report: &mut TrainReport) -> Result<(), String> {
+        let ki = self.next_keyframe();
+        let c = &self.config;
+        let kf = &mut self.keyframes[ki];
+        let coarsest = kf.levels.len() - 1;
+        let li = coarsest
+            .saturating_sub(kf.uses / c.uses_per_level.max(1))
+            .max(c.finest_level.min(coarsest));
+        kf.uses += 1;
+        let kf = &self.keyframes[ki];
+        let level = &kf.levels[li];
+        let intr = level.intrinsics;
+        let (w, h) = (intr.width, intr.height);
+        let with_features = kf.features.is_some() && self.map.num_features > 0;
+
+        let t = Instant::now();
+        let cam = camera(&kf.pose, intr)?;
+        let opts = self.options(true, with_features);
+        let r = render(&self.map.view(), &cam, &opts)?;
+        report.render_s += t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let target_features = kf
+            .features
+            .as_ref()
+            .filter(|_| with_features)
+            .map(|g| g.upsample(w, h));
+        let mut d_color = vec![0.0; w * h * 3];
+        let mut d_depth = vec![0.0; w * h];
+        let mut d_feat = vec![
+            0.0;
+            if with_features {
+                w * h * self.map.num_features
+            } else {
+                0
+            }
+        ];
+        let inputs = LossInputs {
+            width: w,
+            height: h,
+            color: &r.color,
+            target_color: &level.rgb,
+            color_mask: None,
+            depth: Some(DepthInputs {
+                rendered: &r.depth,
+                target: &level.depth,
+            }),
+            features: target_features.as_ref().map(|t| FeatureInputs {
+                rendered: &r.features,
+                target: t,
+                channels: self.map.num_features,
+                mask: None,
+            }),
+        };
+        let terms = self.loss.evaluate(
+            &inputs,
+            LossGrads {
+                color: &mut d_color,
+                depth: Some(&mut d_depth),
+                features: with_features.then_some(&mut d_feat[..]),
+            },
+        )?;
+        report.last = terms;
+        report.loss_s += t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let grads = backward(
+            &self.map.view(),
+            &cam,
+            &r,
+            &ImageGrads {
+                color: Some(&d_color),
+                depth: Some(&d_depth),
+                alpha: None,
+                features: with_features.then_some(&d_feat[..]),
+            },
+        )?;
+        report.backward_s += t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        self.stats.add(&grads.means2d, &r.radii);
+        let m = &mut self.map;
+        self.adam.step(
+            Groups {
+                means: &mut m.means[..],
+                log_scales: &mut m.log_scales[..],
+                quats: &mut m.quats[..],
+                opacity_logits: &mut m.opacity_logits[..],
+                sh: &mut m.sh[..],
+                features: &mut m.features[..],
+            },
+            Groups {
+                means: &grads.means[..],
+                log_scales: &grads.log_scales[..],
+                quats: &grads.quats[..],
+                opacity_logits: &grads.opacity_logits[..],
+                sh: &grads.sh[..],
+                features: &grads.features[..],
+            },
+        )?;
+        normalize_quats(&mut m.quats)?;
+        self.iteration += 1;
+        let interval = self.config.densify.interval;
+        if interval > 0 && self.iteration % interval == 0 {
+            self.refine(report)?;
+        }
+        report.step_s += t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Densifies, then prunes; the optimiser's rows follow the map's.
+    fn refine(&mut self, report: &mut TrainReport) -> Result<(), String> {
+        let extent = self.extent();
+        let d = densify(
+            &mut self.map,
+            &self.stats,
+            extent,
+            &self.config.densify,
+            &mut self.rng,
+        );
+        self.adam.append(d.sources.len());
+        let prune = keep_mask(&self.map, extent, None, &self.config.prune);
+        let keep: Vec<bool> = d.keep.iter().zip(&prune).map(|(a, b)| *a && *b).collect();
+        let before = self.map.len();
+        self.map.retain(&keep);
+        self.adam.retain(&keep)?;
+        report.cloned += d.cloned;
+        report.split += d.split;
+        report.pruned += before - self.map.len() - d.split;
+        self.stats.reset(self.map.len());
+        Ok(())
+    }
+}
+
+/// Every option of [`MapperConfig`] by name, for configuration files and bindings: one table,
+/// so that reading and listing options cannot drift apart.
+macro_rules! options {
+    ($($name:literal => $($field:ident).+ : $ty:ident),* $(,)?) => {
+        impl MapperConfig {
+            /// (name, value) of every option.
+            pub fn entries(&self) -> Vec<(&'static str, f64)> {
+                vec![$(($name, self.$($field).+ as f64)),*]
+            }
+
+            /// Sets one option by name; integers must be whole and non-negative.
+            pub fn set(&mut self, name: &str, value: f64) -> Result<(), String> {
+                if !value.is_finite() {
+                    return Err(format!("mapper option {name} must be finite, got {value}"));
+                }
+                match name {
+                    $($name => { self.$($field).+ = options!(@conv $ty, name, value)?; })*
+                    _ => return Err(format!(
+                        "unknown mapper option {name:?}; known: {}",
+                        [$($name),*].join(", ")
+                    )),
+                }
+                Ok(())
+            }
+        }
+    };
+    (@conv usize, $name:ident, $v:ident) => {
+        if $v >= 0.0 && $v.fract() == 0.0 {
+            Ok($v as usize)
+        } else {
+            Err(format!("mapper option {} must be a whole number >= 0, got {}", $name, $v))
+        }
+    };
+    (@conv u64, $name:ident, $v:ident) => {
+        options!(@conv usize, $name, $v).map(|v| v as u64)
+    };
+    (@conv Real, $name:ident, $v:ident) => {
+        Ok::<Real, String>($v as Real)
+    };
+}
+
+options! {
+    "levels" => levels: usize,
+    "finest_level" => finest_level: usize,
+    "uses_per_level" => uses_per_level: usize,
+    "window" => window: usize,
+    "grow_level" => grow_level: usize,
+    "sh_degree" => sh_degree: usize,
+    "num_features" => num_features: usize,
+    "seed" => seed: u64,
+    "loss_color" => loss.color: Real,
+    "loss_ssim_lambda" => loss.ssim_lambda: Real,
+    "loss_depth" => loss.depth: Real,
+    "loss_feature" => loss.feature: Real,
+    "lr_means" => adam.lr.means: Real,
+    "lr_log_scales" => adam.lr.log_scales: Real,
+    "lr_quats" => adam.lr.quats: Real,
+    "lr_opacity" => adam.lr.opacity_logits: Real,
+    "lr_sh" => adam.lr.sh: Real,
+    "lr_features" => adam.lr.features: Real,
+    "grow_stride" => grow.stride: usize,
+    "grow_alpha_threshold" => grow.alpha_threshold: Real,
+    "grow_depth_tolerance" => grow.depth_tolerance: Real,
+    "grow_opacity" => grow.opacity: Real,
+    "grow_scale" => grow.scale: Real,
+    "depth_min" => grow.depth_min: Real,
+    "depth_max" => grow.depth_max: Real,
+    "prune_min_opacity" => prune.min_opacity: Real,
+    "prune_max_world_scale" => prune.max_world_scale: Real,
+    "densify_interval" => densify.interval: usize,
+    "densify_grad_threshold" => densify.grad_threshold: Real,
+    "densify_split_scale" => densify.split_scale: Real,
+    "max_gaussians" => densify.max_gaussians: usize,
+}

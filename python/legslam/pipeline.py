@@ -1,0 +1,159 @@
+"""`legslam run`: a sequence in, a SLAM run's outputs out, with progress on the terminal.
+
+Outputs in the run folder: trajectory.txt (TUM, one pose per input frame), map.ply (3DGS layout
++ f_lang_* features), pca.npz (the feature compression, for text queries), metrics.json,
+timings.json, config.json, and renders/ (renders beside the input frames, and the rendered
+features as colour).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .slam import SLAM, SLAMConfig
+
+__all__ = ["run", "evaluate", "feature_rgb"]
+
+
+class Progress:
+    """One self-overwriting status line on stderr (plain lines when it is not a terminal)."""
+
+    def __init__(self, total: int, enabled: bool = True):
+        self.total, self.enabled = total, enabled
+        self.tty = sys.stderr.isatty()
+        self.start = time.perf_counter()
+        self._last = 0.0
+
+    def update(self, i: int, text: str) -> None:
+        if not self.enabled:
+            return
+        now = time.perf_counter()
+        done = i + 1 == self.total
+        if not done and now - self._last < (0.2 if self.tty else 5.0):
+            return
+        self._last = now
+        fps = (i + 1) / max(now - self.start, 1e-9)
+        line = f"frame {i + 1}/{self.total}  {fps:5.2f} fps  {text}"
+        print(("\r" + line + "\x1b[K") if self.tty else line, end="\n" if done or not self.tty else "",
+              file=sys.stderr, flush=True)
+
+
+def feature_rgb(features: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
+    """HxWxK features -> HxWx3 uint8: their first three principal components as colour."""
+    h, w, k = features.shape
+    x = features.reshape(-1, k).astype(np.float64)
+    if basis is None:
+        centred = x - x.mean(0)
+        _, _, vt = np.linalg.svd(centred[:: max(1, len(x) // 5000)], full_matrices=False)
+        basis = vt[:3].T
+    y = x @ basis
+    lo, hi = np.percentile(y, 2, axis=0), np.percentile(y, 98, axis=0)
+    y = np.clip((y - lo) / np.maximum(hi - lo, 1e-9), 0, 1)
+    return (y.reshape(h, w, 3) * 255).astype(np.uint8)
+
+
+def _save_png(path: Path, rgb: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)):
+        raise OSError(f"could not write {path}")
+
+
+def _to_u8(img: np.ndarray) -> np.ndarray:
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
+             n_renders: int = 4) -> dict:
+    """Renders the final map at the estimated pose of every `every`-th frame and of every
+    keyframe; PSNR, SSIM and depth L1 against the input, and ATE when ground truth exists."""
+    from .eval import ate, depth_l1_cm, psnr, ssim
+
+    n = len(slam.poses)
+    out: dict = {"frames": n, "keyframes": len(slam.keyframe_frames),
+                 "lost_frames": int(sum(s == "lost" for s in slam.states))}
+    gt = [seq[i].pose for i in range(n)] if n else []
+    if n >= 3 and all(p is not None for p in gt):
+        stats = ate(np.stack(gt), np.stack(slam.poses))
+        out["ate_rmse_m"] = stats["rmse"]
+        out["ate_mean_m"] = stats["mean"]
+    picked = sorted(set(range(0, n, every)))
+    show = set(picked[:: max(1, len(picked) // n_renders)][:n_renders])
+    for name, frames in (("every_%d" % every, picked), ("at_keyframes", slam.keyframe_frames)):
+        vals = {"psnr": [], "ssim": [], "depth_l1_cm": []}
+        for i in frames:
+            f = seq[i]
+            r = slam.render(slam.poses[i], features=renders_dir is not None and i in show)
+            color = np.clip(r["color"], 0, 1)
+            vals["psnr"].append(psnr(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
+            vals["ssim"].append(ssim(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
+            vals["depth_l1_cm"].append(depth_l1_cm(r["depth"], f.depth))
+            if renders_dir is not None and name.startswith("every") and i in show:
+                side = np.concatenate([f.rgb, _to_u8(color)], axis=1)
+                _save_png(renders_dir / f"frame{i:06d}_input_render.png", side)
+                if "features" in r:
+                    _save_png(renders_dir / f"frame{i:06d}_features.png", feature_rgb(r["features"]))
+        out[name] = {k: float(np.mean(v)) if v else None for k, v in vals.items()}
+        out[name]["count"] = len(frames)
+    return out
+
+
+def _timing_table(slam: SLAM, wall_s: float) -> dict:
+    def summary(v):
+        return {"mean_ms": float(np.mean(v)) if v else 0.0,
+                "median_ms": float(np.median(v)) if v else 0.0,
+                "total_s": float(np.sum(v)) / 1e3, "count": len(v)}
+
+    table = {k: summary(v) for k, v in slam.timings.items()}
+    table["feature_extraction (per keyframe, worker thread)"] = summary(slam.feature_timings["extraction"])
+    table["compression (per keyframe)"] = summary(slam.feature_timings["compression"])
+    stats = slam.mapping_stats
+    for key in ("render_s", "loss_s", "backward_s", "step_s"):
+        table[f"mapping.{key[:-2]}"] = {"total_s": float(sum(s[key] for s in stats))}
+    table["wall_s"] = wall_s
+    table["fps"] = len(slam.poses) / wall_s if wall_s > 0 else 0.0
+    return table
+
+
+def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
+        evaluate_every: int = 5, encoder=None) -> dict:
+    """Runs SLAM over a sequence (from legslam.datasets.open) and writes the outputs."""
+    from .eval import write_tum
+
+    config = config or SLAMConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    if len(seq) == 0:
+        raise ValueError(f"{getattr(seq, 'path', 'the sequence')} has no frames")
+    first = seq[0]
+    h, w = first.depth.shape
+    slam = SLAM(config, first.K, w, h, encoder=encoder)
+    bar = Progress(len(seq), progress)
+    t0 = time.perf_counter()
+    for i in range(len(seq)):
+        f = first if i == 0 else seq[i]
+        r = slam.step(f.rgb, f.depth)
+        bar.update(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
+                      f"gaussians {slam.mapper.num_gaussians}")
+    slam.finish()
+    wall = time.perf_counter() - t0
+
+    stamps = [seq[i].timestamp for i in range(len(seq))]
+    write_tum(out / "trajectory.txt", np.array(stamps), np.stack(slam.poses))
+    slam.gaussian_map().save(out / "map.ply")
+    if slam.pca is not None:
+        slam.pca.save(out / "pca.npz")
+    timings = _timing_table(slam, wall)
+    (out / "timings.json").write_text(json.dumps(timings, indent=2))
+    renders = out / "renders"
+    renders.mkdir(exist_ok=True)
+    metrics = evaluate(slam, seq, every=evaluate_every, renders_dir=renders)
+    metrics["gaussians"] = slam.mapper.num_gaussians
+    metrics["fps"] = timings["fps"]
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return {"metrics": metrics, "timings": timings, "out": str(out), "slam": slam}

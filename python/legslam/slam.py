@@ -1,0 +1,348 @@
+"""The SLAM loop: per frame, track against the map rendered at the predicted pose, decide
+keyframes, grow and train the map; language features of keyframes arrive asynchronously and
+become feature targets of the map.
+
+    slam = SLAM(SLAMConfig(), K, width, height)
+    for frame in legslam.datasets.open(path):
+        step = slam.step(frame.rgb, frame.depth)
+    slam.finish()
+    slam.gaussian_map().save("map.ply")
+
+The Python side decides what to do; the engine (legslam._core) does the arithmetic.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import numpy as np
+
+from . import _core
+from .map import GaussianMap
+from .tracking import Tracker
+
+__all__ = ["SLAMConfig", "SLAM", "StepResult"]
+
+
+@dataclass
+class SLAMConfig:
+    """Every knob of a run, with defaults for a 2-core CPU. `mapper` and `tracker` override
+    the engine's own options (`_core.mapper_default_config()`, `tracking.DEFAULT_CONFIG`)."""
+
+    #: Tracking runs at about this width (frame and map render alike; full resolution for
+    #: narrower input).
+    track_width: int = 320
+    #: New keyframe when the camera moved this far (m) or turned this much (degrees) since the
+    #: last one, or the map covers less than `keyframe_overlap` of the view, or
+    #: `keyframe_max_gap` frames passed.
+    keyframe_translation: float = 0.1
+    keyframe_rotation: float = 10.0
+    keyframe_overlap: float = 0.9
+    keyframe_max_gap: int = 15
+    #: Mapping iterations after a new keyframe, and after every other tracked frame.
+    map_iters_keyframe: int = 15
+    map_iters_frame: int = 2
+    #: The map trains at the coarsest pyramid level at least this wide (or full resolution).
+    map_width: int = 320
+    #: Mapping iterations once the sequence has ended.
+    final_iters: int = 100
+    #: A rendered pixel is trusted as a tracking reference where its alpha exceeds this; below
+    #: `min_reference_coverage` of trusted pixels, the last keyframe is the reference instead.
+    reference_alpha: float = 0.8
+    min_reference_coverage: float = 0.5
+    #: Language features: encoder ("default", a model name or an ONNX path), its input size,
+    #: the compressed dimension K, and how many keyframes' patches fit the PCA.
+    features: bool = True
+    encoder: str = "default"
+    encoder_size: int = 224
+    encoder_threads: int = 1
+    feature_dim: int = 64
+    pca_keyframes: int = 3
+    #: A PCA fitted beforehand (.npz from legslam.features.PCA.save) instead of fitting one.
+    pca_path: Optional[str] = None
+    mapper: dict = field(default_factory=dict)
+    tracker: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_file(cls, path, **overrides) -> "SLAMConfig":
+        """Reads a .toml, .json or .yaml file (only the keys given change a default)."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no config file at {path}")
+        text = path.read_text()
+        if path.suffix == ".toml":
+            import tomllib
+            data = tomllib.loads(text)
+        elif path.suffix == ".json":
+            data = json.loads(text)
+        elif path.suffix in (".yaml", ".yml"):
+            try:
+                import yaml
+            except ImportError:
+                raise ValueError(f"{path}: reading YAML needs PyYAML (pip install pyyaml); "
+                                 "TOML and JSON need nothing") from None
+            data = yaml.safe_load(text) or {}
+        else:
+            raise ValueError(f"{path}: config files are .toml, .json or .yaml")
+        return cls.from_dict({**data, **overrides}, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "config") -> "SLAMConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown option(s) {', '.join(unknown)}; "
+                             f"known: {', '.join(sorted(known))}")
+        return cls(**data)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class StepResult:
+    index: int
+    pose: np.ndarray
+    #: "init" (first frame), "ok", or "lost" (pose is the motion-model prediction).
+    state: str
+    keyframe: bool
+    reason: Optional[str] = None
+
+
+def _scaled_K(K: np.ndarray, s: float) -> np.ndarray:
+    """Intrinsics of the image resized by `s`, pixel centres aligned."""
+    out = K.astype(np.float64).copy()
+    out[0, 0] *= s
+    out[1, 1] *= s
+    out[0, 2] = (K[0, 2] + 0.5) * s - 0.5
+    out[1, 2] = (K[1, 2] + 0.5) * s - 0.5
+    return out
+
+
+def _k4(K: np.ndarray) -> list:
+    return [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+
+
+def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
+    r = a[:3, :3].T @ b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
+class SLAM:
+    """Online SLAM over frames of one camera (K for a width x height image)."""
+
+    def __init__(self, config: SLAMConfig, K, width: int, height: int, encoder=None):
+        self.config = config
+        self.K = np.asarray(K, dtype=np.float64)
+        if self.K.shape != (3, 3):
+            raise ValueError(f"K must be 3x3, got shape {self.K.shape}")
+        self.width, self.height = int(width), int(height)
+        if config.track_width < 16:
+            raise ValueError(f"track_width must be at least 16, got {config.track_width}")
+        s = min(1.0, config.track_width / self.width)
+        self.track_size = (max(1, round(self.width * s)), max(1, round(self.height * s)))
+        self.K_track = _scaled_K(self.K, self.track_size[0] / self.width)
+        mapper_opts = dict(config.mapper)
+        mapper_opts.setdefault("num_features", config.feature_dim if config.features else 0)
+        # Train and grow at about 320 pixels wide (full resolution for smaller inputs): what
+        # two cores afford per iteration.
+        level = 0
+        while self.width >> (level + 1) >= config.map_width:
+            level += 1
+        mapper_opts.setdefault("finest_level", level)
+        mapper_opts.setdefault("grow_level", level)
+        mapper_opts.setdefault("levels", level + 3)
+        self.mapper = _core.MapperCore(mapper_opts)
+        self.tracker = Tracker(**self._tracker_options())
+        self.poses: list[np.ndarray] = []
+        self.states: list[str] = []
+        self.keyframe_frames: list[int] = []
+        self._last_kf: Optional[tuple] = None  # (pose, rgb_t, depth_t, frame index)
+        self.timings: dict[str, list[float]] = {
+            "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
+        self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
+        self.mapping_stats: list[dict] = []
+        self._features = _FeatureFeed(self, encoder) if config.features else None
+
+    def _tracker_options(self) -> dict:
+        """The tracker sees images already at `track_width`: its finest level is theirs, and
+        it uses only as many pyramid levels as keep the coarsest at least 8 pixels."""
+        from .tracking import DEFAULT_CONFIG
+
+        opts = {"finest_level": 0, **self.config.tracker}
+        if "levels" not in self.config.tracker:
+            smallest = min(self.track_size) >> opts["finest_level"]
+            fit = max(1, int(np.log2(max(smallest, 8) / 8)) + 1)
+            opts["levels"] = min(DEFAULT_CONFIG["levels"], fit)
+        return opts
+
+    # --- per frame ---------------------------------------------------------------------------
+
+    def step(self, rgb: np.ndarray, depth: np.ndarray) -> StepResult:
+        t_frame = time.perf_counter()
+        t0 = time.perf_counter()
+        rgb = np.asarray(rgb)
+        depth = np.asarray(depth, dtype=np.float32)
+        if rgb.shape != (self.height, self.width, 3) or rgb.dtype != np.uint8:
+            raise ValueError(f"frame {len(self.poses)}: rgb must be {self.height}x{self.width}x3 "
+                             f"uint8, got {rgb.dtype} {rgb.shape}")
+        if depth.shape != (self.height, self.width):
+            raise ValueError(f"frame {len(self.poses)}: depth must be {self.height}x{self.width}, "
+                             f"got {depth.shape}")
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+        rgb_f = rgb.astype(np.float32) / 255.0
+        rgb_t = cv2.resize(rgb, self.track_size, interpolation=cv2.INTER_AREA)
+        depth_t = cv2.resize(depth, self.track_size, interpolation=cv2.INTER_NEAREST)
+        self.timings["preprocessing"].append(1e3 * (time.perf_counter() - t0))
+
+        i = len(self.poses)
+        t0 = time.perf_counter()
+        reason = None
+        if i == 0:
+            pose, state, coverage = np.eye(4), "init", 0.0
+        else:
+            pose, state, coverage, reason = self._track(rgb_t, depth_t)
+        self.timings["tracking"].append(1e3 * (time.perf_counter() - t0))
+
+        t0 = time.perf_counter()
+        keyframe = state != "lost" and self._is_keyframe(i, pose, coverage)
+        if keyframe:
+            kf_id, _ = self.mapper.add_keyframe(rgb_f, depth, _k4(self.K), pose)
+            self._last_kf = (pose, rgb_t, depth_t, i)
+            self.keyframe_frames.append(i)
+            if self._features is not None:
+                self._features.submit(kf_id, rgb)
+        if self._features is not None:
+            self._features.collect()
+        if state != "lost":
+            iters = self.config.map_iters_keyframe if keyframe else self.config.map_iters_frame
+            self.mapping_stats.append(self.mapper.train(iters))
+        self.timings["mapping"].append(1e3 * (time.perf_counter() - t0))
+
+        self.poses.append(pose)
+        self.states.append(state)
+        self.timings["frame"].append(1e3 * (time.perf_counter() - t_frame))
+        return StepResult(i, pose, state, keyframe, reason)
+
+    def _predict(self) -> np.ndarray:
+        """Constant velocity: the last motion applied once more."""
+        if len(self.poses) < 2:
+            return self.poses[-1]
+        a, b = self.poses[-2], self.poses[-1]
+        return b @ np.linalg.inv(a) @ b
+
+    def _track(self, rgb_t, depth_t):
+        predicted = self._predict()
+        w, h = self.track_size
+        r = self.mapper.render(predicted, _k4(self.K_track), w, h)
+        alpha = r["alpha"]
+        trusted = alpha > self.config.reference_alpha
+        coverage = float(trusted.mean())
+        if coverage >= self.config.min_reference_coverage:
+            ref_depth = np.where(trusted, r["depth"] / np.maximum(alpha, 1e-6), 0).astype(np.float32)
+            ref_rgb = np.clip(r["color"] / np.maximum(alpha, 1e-6)[..., None], 0, 1)
+            ref_pose = predicted
+        else:
+            ref_pose, ref_rgb, ref_depth, _ = self._last_kf
+        res = self.tracker.track(rgb_t, depth_t, self.K_track, ref_rgb, ref_depth, ref_pose,
+                                 init_pose=predicted)
+        if res.lost:
+            return predicted, "lost", coverage, res.reason
+        return res.pose, "ok", coverage, None
+
+    def _is_keyframe(self, i: int, pose: np.ndarray, coverage: float) -> bool:
+        c = self.config
+        if self._last_kf is None:
+            return True
+        kf_pose, _, _, kf_index = self._last_kf
+        moved = np.linalg.norm(pose[:3, 3] - kf_pose[:3, 3])
+        return (moved > c.keyframe_translation
+                or _rotation_deg(kf_pose, pose) > c.keyframe_rotation
+                or coverage < c.keyframe_overlap
+                or i - kf_index >= c.keyframe_max_gap)
+
+    # --- end of sequence ---------------------------------------------------------------------
+
+    def finish(self) -> None:
+        """Waits for outstanding keyframe features and runs the final mapping iterations."""
+        if self._features is not None:
+            self._features.drain()
+        if self.config.final_iters > 0:
+            self.mapping_stats.append(self.mapper.train(self.config.final_iters))
+
+    def gaussian_map(self) -> GaussianMap:
+        return GaussianMap.from_arrays(self.mapper.export())
+
+    @property
+    def pca(self):
+        return None if self._features is None else self._features.pca
+
+    def render(self, pose, K=None, width=None, height=None, features=False) -> dict:
+        """Renders the live map (colour, depth, alpha, and features if asked)."""
+        K = self.K if K is None else np.asarray(K)
+        return self.mapper.render(np.asarray(pose, dtype=np.float64), _k4(K),
+                                  width or self.width, height or self.height, features)
+
+
+class _FeatureFeed:
+    """Keyframe features, off the tracking path: an encoder in a worker thread, a PCA fitted on
+    the first keyframes' patches (or loaded), and the compressed grids handed to the mapper."""
+
+    def __init__(self, slam: SLAM, encoder=None):
+        from .features import PCA, AsyncExtractor, Encoder
+
+        c = slam.config
+        self.slam = slam
+        if encoder is None:
+            encoder = Encoder(c.encoder, input_size=c.encoder_size, threads=c.encoder_threads)
+        self.extractor = AsyncExtractor(encoder)
+        self.pca = PCA.load(c.pca_path) if c.pca_path else None
+        if self.pca is not None and self.pca.n_components != c.feature_dim:
+            raise ValueError(f"{c.pca_path} compresses to {self.pca.n_components} dimensions, "
+                             f"feature_dim is {c.feature_dim}")
+        self._waiting: list = []  # (keyframe id, raw features) until the PCA is fitted
+
+    def submit(self, kf_id: int, rgb: np.ndarray) -> None:
+        self.extractor.submit(kf_id, rgb)
+
+    def collect(self) -> None:
+        for r in self.extractor.poll():
+            self._take(r)
+
+    def drain(self) -> None:
+        self.extractor.close()
+        self.collect()
+        if self._waiting and self.pca is None:
+            self._fit()
+        self._flush()
+
+    def _take(self, r) -> None:
+        self.slam.feature_timings["extraction"].append(r.extract_ms)
+        self._waiting.append((r.key, r.features))
+        if self.pca is None and len(self._waiting) >= self.slam.config.pca_keyframes:
+            self._fit()
+        self._flush()
+
+    def _fit(self) -> None:
+        from .features import PCA
+
+        pca = PCA(self.slam.config.feature_dim)
+        for _, raw in self._waiting:
+            pca.partial_fit(raw.reshape(-1, raw.shape[-1]))
+        self.pca = pca
+
+    def _flush(self) -> None:
+        """Compresses the waiting grids and hands them to the mapper, once there is a PCA."""
+        if self.pca is None:
+            return
+        for key, raw in self._waiting:
+            t0 = time.perf_counter()
+            grid = np.ascontiguousarray(self.pca.transform(raw), dtype=np.float32)
+            self.slam.feature_timings["compression"].append(1e3 * (time.perf_counter() - t0))
+            self.slam.mapper.set_features(int(key), grid)
+        self._waiting.clear()
