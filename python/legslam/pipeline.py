@@ -1,8 +1,8 @@
 """`legslam run`: a sequence in, a SLAM run's outputs out, with progress on the terminal.
 
 Outputs in the run folder: trajectory.txt (TUM, one pose per input frame), map.ply (3DGS layout
-+ f_lang_* features), pca.npz (the feature compression, for text queries), metrics.json,
-timings.json, config.json, and renders/ (renders beside the input frames, and the rendered
++ f_lang_* features), pca.npz (the feature compression, for text queries), camera.json (the
+intrinsics and image size), metrics.json, timings.json, config.json, and renders/ (renders beside the input frames, and the rendered
 features as colour).
 """
 
@@ -128,10 +128,14 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    if len(seq) == 0:
+    first = seq[0] if len(seq) else None
+    if first is not None:
+        h, w = first.depth.shape
+        (out / "camera.json").write_text(json.dumps(
+            {"K": first.K.tolist(), "width": w, "height": h,
+             "sequence": str(getattr(seq, "path", ""))}, indent=2))
+    if first is None:
         raise ValueError(f"{getattr(seq, 'path', 'the sequence')} has no frames")
-    first = seq[0]
-    h, w = first.depth.shape
     slam = SLAM(config, first.K, w, h, encoder=encoder)
     bar = Progress(len(seq), progress)
     t0 = time.perf_counter()
