@@ -69,11 +69,12 @@ impl Ssim {
         channels: usize,
         grad: &mut [Real],
     ) -> Result<f64, String> {
-        let emit = Emit {
-            scale: 1.0,
-            add: false,
-        };
-        self.run(x, y, (width, height, channels), Some((grad, emit)))
+        self.run(
+            x,
+            y,
+            (width, height, channels),
+            Some((grad, Emit::set(1.0))),
+        )
     }
 
     /// The whole computation; with `grad`, emits `scale * dSSIM/dx` into it (set or add).
@@ -136,7 +137,7 @@ impl Ssim {
             });
 
         // Vertical filters, then per pixel the SSIM and its derivatives with respect to the
-        // three filtered maps that depend on x, written into padded lines 0, 1, 2.
+        // three filtered maps that depend on x, written into padded lines 0, 1, 2 (free now).
         let (horizontal, zeros) = (&self.horizontal, &self.zeros[..]);
         let total = sum_items_zip(
             &mut self.vertical,
