@@ -1,6 +1,6 @@
 //! Feature loss: mean over counted pixels of 1 - cos(rendered, target).
 
-use super::{check_len, sum_items, Emit};
+use super::{check_len, dots, sum_items, Emit};
 use crate::Real;
 
 /// Norms below this are clamped to it: cos = r.t / (max(|r|, eps) max(|t|, eps)).
@@ -60,12 +60,7 @@ pub(crate) fn cosine_into(
             &rendered[p * channels..][..channels],
             &target[p * channels..][..channels],
         );
-        let (mut rr, mut tt, mut rt) = (0.0, 0.0, 0.0);
-        for (&a, &b) in r.iter().zip(t) {
-            rr += a * a;
-            tt += b * b;
-            rt += a * b;
-        }
+        let (rr, tt, rt) = dots(r, t);
         let norm_r = rr.sqrt();
         let (nr, nt) = (norm_r.max(COS_EPS), tt.sqrt().max(COS_EPS));
         let cos = rt / (nr * nt);

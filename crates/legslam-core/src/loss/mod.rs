@@ -233,3 +233,75 @@ pub(crate) fn sum_items(
         });
     partial.iter().sum()
 }
+
+/// [`sum_items`] over two buffers with the same number of items, item `i` of each handed to
+/// `f` together.
+pub(crate) fn sum_items_zip(
+    buf: &mut [Real],
+    item: usize,
+    other: &mut [Real],
+    other_item: usize,
+    f: impl Fn(usize, &mut [Real], &mut [Real]) -> f64 + Sync,
+) -> f64 {
+    if item == 0 || other_item == 0 || buf.len() < item {
+        return 0.0;
+    }
+    let per = (buf.len() / item).div_ceil(BLOCKS);
+    let mut partial = [0.0f64; BLOCKS];
+    partial
+        .par_iter_mut()
+        .zip(buf.par_chunks_mut(per * item))
+        .zip(other.par_chunks_mut(per * other_item))
+        .enumerate()
+        .for_each(|(b, ((p, chunk), other))| {
+            *p = chunk
+                .chunks_exact_mut(item)
+                .zip(other.chunks_exact_mut(other_item))
+                .enumerate()
+                .map(|(i, (v, o))| f(b * per + i, v, o))
+                .sum();
+        });
+    partial.iter().sum()
+}
+
+/// Independent partial sums, so the loop vectorises (a single running sum cannot be reordered).
+const LANES: usize = 8;
+
+/// Sum of `v`, in a fixed order.
+pub(crate) fn lane_sum(v: &[Real]) -> f64 {
+    let mut acc = [0.0 as Real; LANES];
+    let chunks = v.chunks_exact(LANES);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for (a, &x) in acc.iter_mut().zip(c) {
+            *a += x;
+        }
+    }
+    acc.iter().chain(rest).map(|&a| f64::from(a)).sum()
+}
+
+/// (a.a, b.b, a.b) of two equally long vectors, in a fixed order.
+pub(crate) fn dots(a: &[Real], b: &[Real]) -> (Real, Real, Real) {
+    let (mut aa, mut bb, mut ab) = (
+        [0.0 as Real; LANES],
+        [0.0 as Real; LANES],
+        [0.0 as Real; LANES],
+    );
+    let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for i in 0..LANES {
+            aa[i] += x[i] * x[i];
+            bb[i] += y[i] * y[i];
+            ab[i] += x[i] * y[i];
+        }
+    }
+    let (mut s_aa, mut s_bb, mut s_ab): (Real, Real, Real) =
+        (aa.iter().sum(), bb.iter().sum(), ab.iter().sum());
+    for (&x, &y) in ra.iter().zip(rb) {
+        s_aa += x * x;
+        s_bb += y * y;
+        s_ab += x * y;
+    }
+    (s_aa, s_bb, s_ab)
+}

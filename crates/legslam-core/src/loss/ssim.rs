@@ -15,7 +15,7 @@
 
 use rayon::prelude::*;
 
-use super::{check_len, sum_items, Emit};
+use super::{check_len, lane_sum, sum_items_zip, Emit};
 use crate::Real;
 
 const RADIUS: usize = 5;
@@ -30,11 +30,16 @@ fn kernel() -> [Real; RADIUS + 1] {
     std::array::from_fn(|d| (g(d) / total) as Real)
 }
 
-/// Reusable SSIM workspace: two buffers of five image-sized maps, grown on demand.
+/// Reusable SSIM workspace, grown on demand: per image row, five lines with zero margins
+/// (inputs of the horizontal filter), five horizontal and five vertical results; and a zero
+/// line standing in for rows beyond the image.
 #[derive(Debug, Default)]
 pub struct Ssim {
+    padded: Vec<Real>,
     horizontal: Vec<Real>,
     vertical: Vec<Real>,
+    zeros: Vec<Real>,
+    shape: (usize, usize, usize),
 }
 
 impl Ssim {
@@ -64,11 +69,12 @@ impl Ssim {
         channels: usize,
         grad: &mut [Real],
     ) -> Result<f64, String> {
-        let emit = Emit {
-            scale: 1.0,
-            add: false,
-        };
-        self.run(x, y, (width, height, channels), Some((grad, emit)))
+        self.run(
+            x,
+            y,
+            (width, height, channels),
+            Some((grad, Emit::set(1.0))),
+        )
     }
 
     /// The whole computation; with `grad`, emits `scale * dSSIM/dx` into it (set or add).
@@ -91,83 +97,102 @@ impl Ssim {
             check_len("SSIM gradient buffer", g.len(), n)?;
         }
         let row = width * channels;
-        // Each image row owns five maps of `row` values: [row][map][column, channel].
+        let margin = RADIUS * channels;
+        let line = row + 2 * margin;
+        if self.shape != (width, height, channels) {
+            // Margins are never written, so they stay zero only if cleared on a new shape.
+            self.padded.clear();
+            self.shape = (width, height, channels);
+        }
+        self.padded.resize(5 * line * height, 0.0);
         self.horizontal.resize(5 * n, 0.0);
         self.vertical.resize(5 * n, 0.0);
+        self.zeros.resize(row, 0.0);
         let k = kernel();
         let inv_n = 1.0 / n as Real;
-        let want_grad = grad.is_some();
 
-        // Products into the vertical buffer (free for now), then horizontal filters.
-        self.horizontal
-            .par_chunks_mut(5 * row)
-            .zip(self.vertical.par_chunks_mut(5 * row))
+        // Maps x, y, xx, yy, xy into the padded lines, then horizontal filters.
+        self.padded
+            .par_chunks_mut(5 * line)
+            .zip(self.horizontal.par_chunks_mut(5 * row))
             .enumerate()
-            .for_each(|(r, (h, v))| {
+            .for_each(|(r, (p, h))| {
                 let (xs, ys) = (&x[r * row..][..row], &y[r * row..][..row]);
-                let (vx, rest) = v.split_at_mut(row);
-                let (vy, rest) = rest.split_at_mut(row);
-                let (vxx, rest) = rest.split_at_mut(row);
-                let (vyy, vxy) = rest.split_at_mut(row);
+                let mut lines = p.chunks_exact_mut(line).map(|l| &mut l[margin..][..row]);
+                let mut next = || lines.next().unwrap_or_default();
+                let (px, py, pxx, pyy, pxy) = (next(), next(), next(), next(), next());
+                let (px, py, pxx) = (&mut px[..row], &mut py[..row], &mut pxx[..row]);
+                let (pyy, pxy) = (&mut pyy[..row], &mut pxy[..row]);
                 for j in 0..row {
                     let (a, b) = (xs[j], ys[j]);
-                    vx[j] = a;
-                    vy[j] = b;
-                    vxx[j] = a * a;
-                    vyy[j] = b * b;
-                    vxy[j] = a * b;
+                    px[j] = a;
+                    py[j] = b;
+                    pxx[j] = a * a;
+                    pyy[j] = b * b;
+                    pxy[j] = a * b;
                 }
-                for (hm, vm) in h.chunks_exact_mut(row).zip(v.chunks_exact(row)) {
-                    filter_line(&k, vm, hm, channels);
+                for (pl, hl) in p.chunks_exact(line).zip(h.chunks_exact_mut(row)) {
+                    filter_line(&k, pl, hl, channels);
                 }
             });
 
         // Vertical filters, then per pixel the SSIM and its derivatives with respect to the
-        // three filtered maps that depend on x, stored over the first three maps.
-        let horizontal = &self.horizontal;
-        let total = sum_items(&mut self.vertical, 5 * row, |r, v| {
-            filter_column(&k, horizontal, 5 * row, height, r, v);
-            // Buffer order x, y, xx, yy, xy; the derivatives overwrite maps 0, 1, 2 in place.
-            let (mx, rest) = v.split_at_mut(row);
-            let (my, rest) = rest.split_at_mut(row);
-            let (exx, rest) = rest.split_at_mut(row);
-            let (eyy, exy) = rest.split_at_mut(row);
-            let mut sum = 0.0f64;
-            for j in 0..row {
-                let (ux, uy) = (mx[j], my[j]);
-                let sxx = exx[j] - ux * ux;
-                let syy = eyy[j] - uy * uy;
-                let sxy = exy[j] - ux * uy;
-                let a1 = 2.0 * ux * uy + C1;
-                let a2 = 2.0 * sxy + C2;
-                let b1 = ux * ux + uy * uy + C1;
-                let b2 = sxx + syy + C2;
-                let inv = 1.0 / (b1 * b2);
-                let s = a1 * a2 * inv;
-                sum += f64::from(s);
-                if want_grad {
+        // three filtered maps that depend on x, written into padded lines 0, 1, 2 (free now).
+        let (horizontal, zeros) = (&self.horizontal, &self.zeros[..]);
+        let total = sum_items_zip(
+            &mut self.vertical,
+            5 * row,
+            &mut self.padded,
+            5 * line,
+            |r, v, p| {
+                for (m, out) in v.chunks_exact_mut(row).enumerate() {
+                    filter_column(&k, horizontal, 5 * row, m * row, zeros, height, r, out);
+                }
+                let mut maps = v.chunks_exact_mut(row);
+                let mut next = || maps.next().unwrap_or_default();
+                let (mx, my, exx, eyy, exy) = (next(), next(), next(), next(), next());
+                // Equal, known lengths let the loop below drop its bounds checks and vectorise.
+                let (mx, my, exx) = (&mx[..row], &my[..row], &exx[..row]);
+                let (eyy, exy) = (&eyy[..row], &mut exy[..row]);
+                let mut lines = p.chunks_exact_mut(line).map(|l| &mut l[margin..][..row]);
+                let mut next = || lines.next().unwrap_or_default();
+                let (d_mx, d_exx, d_exy) = (next(), next(), next());
+                let (d_mx, d_exx, d_exy) = (&mut d_mx[..row], &mut d_exx[..row], &mut d_exy[..row]);
+                for j in 0..row {
+                    let (ux, uy) = (mx[j], my[j]);
+                    let sxx = exx[j] - ux * ux;
+                    let syy = eyy[j] - uy * uy;
+                    let sxy = exy[j] - ux * uy;
+                    let a1 = 2.0 * ux * uy + C1;
+                    let a2 = 2.0 * sxy + C2;
+                    let b1 = ux * ux + uy * uy + C1;
+                    let b2 = sxx + syy + C2;
+                    let inv = 1.0 / (b1 * b2);
+                    let s = a1 * a2 * inv;
+                    // E[xy] is used up: keep the SSIM map in its place for the sum below.
+                    exy[j] = s;
+                    // Derivatives even for the value alone: a branch here would stop vectorisation.
                     // dS/dA1 = A2 inv, dS/dA2 = A1 inv, dS/dB1 = -S/B1 = -S B2 inv,
                     // dS/dB2 = -S/B2 = -S B1 inv (no further divisions).
                     let d_a1 = a2 * inv;
                     let d_a2 = a1 * inv;
-                    let d_b2 = -s * b1 * inv;
-                    mx[j] = inv_n * (2.0 * uy * (d_a1 - d_a2) + 2.0 * ux * s * (b1 - b2) * inv);
-                    my[j] = inv_n * d_b2;
-                    exx[j] = inv_n * (2.0 * d_a2);
+                    d_mx[j] = inv_n * (2.0 * uy * (d_a1 - d_a2) + 2.0 * ux * s * (b1 - b2) * inv);
+                    d_exx[j] = inv_n * (-s * b1 * inv);
+                    d_exy[j] = inv_n * (2.0 * d_a2);
                 }
-            }
-            sum
-        });
+                lane_sum(exy)
+            },
+        );
         let Some((grad, emit)) = grad else {
             return Ok(total / n as f64);
         };
-        // Maps 0, 1, 2 now hold dS/d(mu_x), dS/d(E[x^2]), dS/d(E[xy]): filter them back.
-        self.horizontal
-            .par_chunks_mut(5 * row)
-            .zip(self.vertical.par_chunks(5 * row))
-            .for_each(|(h, v)| {
-                for (hm, vm) in h.chunks_exact_mut(row).zip(v.chunks_exact(row)).take(3) {
-                    filter_line(&k, vm, hm, channels);
+        // Filter dS/d(mu_x), dS/d(E[x^2]), dS/d(E[xy]) back (the filter is self-adjoint).
+        self.padded
+            .par_chunks(5 * line)
+            .zip(self.horizontal.par_chunks_mut(5 * row))
+            .for_each(|(p, h)| {
+                for (pl, hl) in p.chunks_exact(line).zip(h.chunks_exact_mut(row)).take(3) {
+                    filter_line(&k, pl, hl, channels);
                 }
             });
         let horizontal = &self.horizontal;
@@ -176,11 +201,14 @@ impl Ssim {
             .zip(grad.par_chunks_mut(row))
             .enumerate()
             .for_each(|(r, (v, g))| {
-                let v = &mut v[..3 * row];
-                filter_column(&k, horizontal, 5 * row, height, r, v);
+                for (m, out) in v.chunks_exact_mut(row).take(3).enumerate() {
+                    filter_column(&k, horizontal, 5 * row, m * row, zeros, height, r, out);
+                }
                 let (xs, ys) = (&x[r * row..][..row], &y[r * row..][..row]);
                 let (dm, rest) = v.split_at(row);
-                let (dxx, dxy) = rest.split_at(row);
+                let (dxx, rest) = rest.split_at(row);
+                let dxy = &rest[..row];
+                let g = &mut g[..row];
                 for j in 0..row {
                     emit.put(&mut g[j], dm[j] + 2.0 * xs[j] * dxx[j] + ys[j] * dxy[j]);
                 }
@@ -189,61 +217,47 @@ impl Ssim {
     }
 }
 
-/// `out = window (*) inp` along one image row whose pixels are `stride` values apart, with
-/// zeros beyond the row's ends. Each tap is a shifted contiguous slice, so the loops vectorise.
-fn filter_line(k: &[Real; RADIUS + 1], inp: &[Real], out: &mut [Real], stride: usize) {
-    let n = inp.len();
-    for (o, &v) in out.iter_mut().zip(inp) {
-        *o = k[0] * v;
-    }
-    for (d, &w) in k.iter().enumerate().skip(1) {
-        let s = d * stride;
-        if s >= n {
-            break;
-        }
-        // Right neighbour for j < n - s, left neighbour for j >= s.
-        for (o, &v) in out[..n - s].iter_mut().zip(&inp[s..]) {
-            *o += w * v;
-        }
-        for (o, &v) in out[s..].iter_mut().zip(&inp[..n - s]) {
-            *o += w * v;
-        }
+/// `out[j] = k0 c[j] + sum_d k_d (before_d[j] + after_d[j])`: the symmetric window applied to
+/// eleven equally long input slices, one output write per value (vectorises).
+#[inline(always)]
+fn window_sum(k: &[Real; RADIUS + 1], taps: [&[Real]; 2 * RADIUS + 1], out: &mut [Real]) {
+    let n = out.len();
+    let [b5, b4, b3, b2, b1, c, a1, a2, a3, a4, a5] = taps.map(|t| &t[..n]);
+    for (j, o) in out.iter_mut().enumerate() {
+        *o = k[0] * c[j]
+            + k[1] * (b1[j] + a1[j])
+            + k[2] * (b2[j] + a2[j])
+            + k[3] * (b3[j] + a3[j])
+            + k[4] * (b4[j] + a4[j])
+            + k[5] * (b5[j] + a5[j]);
     }
 }
 
-/// `out = window (*) column` for image row `r`: the weighted sum of the rows `r - 5 ..= r + 5`
-/// that exist, each `out.len()` values starting at `row * row_stride` in `buf`.
+/// Horizontal filter of one image row: `padded` holds the row's values with `RADIUS` zero
+/// pixels on each side, pixels `stride` values apart; `out` gets the filtered row.
+fn filter_line(k: &[Real; RADIUS + 1], padded: &[Real], out: &mut [Real], stride: usize) {
+    let n = out.len();
+    let taps = std::array::from_fn(|o| &padded[o * stride..][..n]);
+    window_sum(k, taps, out);
+}
+
+/// Vertical filter for image row `r` of the map starting `offset` values into each row of
+/// `buf` (rows `row_stride` apart); rows beyond the image read as `zeros`.
+#[allow(clippy::too_many_arguments)]
 fn filter_column(
     k: &[Real; RADIUS + 1],
     buf: &[Real],
     row_stride: usize,
+    offset: usize,
+    zeros: &[Real],
     height: usize,
     r: usize,
     out: &mut [Real],
 ) {
-    let len = out.len();
-    let row = |i: usize| &buf[i * row_stride..][..len];
-    for (o, &v) in out.iter_mut().zip(row(r)) {
-        *o = k[0] * v;
-    }
-    for (d, &w) in k.iter().enumerate().skip(1) {
-        match (r.checked_sub(d), r + d < height) {
-            (Some(up), true) => {
-                for ((o, &a), &b) in out.iter_mut().zip(row(up)).zip(row(r + d)) {
-                    *o += w * (a + b);
-                }
-            }
-            (Some(up), false) => {
-                for (o, &a) in out.iter_mut().zip(row(up)) {
-                    *o += w * a;
-                }
-            }
-            (None, true) => {
-                for (o, &b) in out.iter_mut().zip(row(r + d)) {
-                    *o += w * b;
-                }
-            }
-            (None, false) => {}
-        }
-    }
+    let n = out.len();
+    let taps = std::array::from_fn(|o| match (r + o).checked_sub(RADIUS) {
+        Some(i) if i < height => &buf[i * row_stride + offset..][..n],
+        _ => &zeros[..n],
+    });
+    window_sum(k, taps, out);
 }
