@@ -2,6 +2,7 @@
 or mapper cannot meet: each is compared against a run with that part disabled."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -50,10 +51,7 @@ def test_mapping_improves_the_map(mapped, scene, tmp_path):
 
 
 def test_outputs_are_written(mapped):
-    out = mapped["out"]
-    from pathlib import Path
-
-    out = Path(out)
+    out = Path(mapped["out"])
     stamps, poses = read_tum(out / "trajectory.txt")
     assert len(poses) == mapped["metrics"]["frames"] == 24
     timings = json.loads((out / "timings.json").read_text())
@@ -102,3 +100,24 @@ def test_cli_errors_are_actionable(tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
     assert main(["run", str(tmp_path), "--stride", "0"]) == 2
     assert "--stride must be at least 1" in capsys.readouterr().err
+
+
+def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):
+    import cv2
+
+    out = Path(mapped["out"])
+    assert main(["render", str(out), "--every", "10", "--out", str(tmp_path)]) == 0
+    views = sorted(tmp_path.glob("*_color.png"))
+    assert len(views) == 3  # poses 0, 10, 20 of 24
+    color = cv2.imread(str(views[0]))
+    depth = cv2.imread(str(tmp_path / "000000_depth.png"), cv2.IMREAD_UNCHANGED)
+    assert color.shape == (120, 160, 3) and color.std() > 10
+    assert depth.dtype == np.uint16 and 500 < np.median(depth[depth > 0]) < 10000
+    capsys.readouterr()
+    assert main(["eval", str(out)]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    # The same map and poses as the run's own evaluation: the same numbers.
+    assert abs(report["ate_rmse_cm"] - 100 * mapped["metrics"]["ate_rmse_m"]) < 1e-6
+    assert abs(report["psnr"] - mapped["metrics"]["every_5"]["psnr"]) < 0.05
+    assert "| psnr |" in capsys.readouterr().out
+    assert main(["eval", str(tmp_path)]) == 2

@@ -1,0 +1,93 @@
+"""SLAM benchmark on a real sequence (default: the 1000-frame 7-Scenes sequence in
+../shared/data, 640x480): the whole pipeline with language features, as `legslam run` does it,
+and the tracker's own frame-to-frame odometry on the same frames in the same process.
+
+Prints ATE RMSE (all frames, SE(3)-aligned, as `evo_ape -a`), PSNR / SSIM / depth L1 of the
+final map rendered at the estimated pose of every 5th frame and of every keyframe, the number
+of Gaussians, peak memory, frames per second and the per-stage time table.
+
+    python benches/bench_slam.py [PATH] [--max-frames N] [--stride S] [--no-features] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT = ROOT.parent / "shared" / "data" / "7scenes_tsdf_fusion" / "data"
+
+
+def odometry_ate(seq) -> tuple[float, float]:
+    """ATE (m) and median ms/frame of the tracker alone, frame to frame, default options."""
+    from legslam.eval import ate_rmse
+    from legslam.tracking import Odometry
+
+    odo = Odometry()
+    poses, times = [], []
+    for i in range(len(seq)):
+        f = seq[i]
+        t0 = time.perf_counter()
+        poses.append(odo.step(f.rgb, f.depth, f.K).pose)
+        times.append(1e3 * (time.perf_counter() - t0))
+    gt = np.stack([seq[i].pose for i in range(len(seq))])
+    return ate_rmse(gt, np.stack(poses)), float(np.median(times[1:]))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("path", nargs="?", default=str(DEFAULT))
+    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--stride", type=int, default=1)
+    ap.add_argument("--no-features", action="store_true")
+    ap.add_argument("--config", default=None, help="SLAM config file (.toml/.json)")
+    ap.add_argument("--out", default="/tmp/legslam-bench-slam")
+    args = ap.parse_args()
+    if not Path(args.path).exists():
+        print(f"no sequence at {args.path} (the shared data folder beside the repository)")
+        return 1
+    from legslam.datasets import open as open_dataset
+    from legslam.pipeline import run
+    from legslam.slam import SLAMConfig
+
+    seq = open_dataset(args.path, stride=args.stride, max_frames=args.max_frames)
+    overrides = {"features": False} if args.no_features else {}
+    cfg = SLAMConfig.from_file(args.config, **overrides) if args.config else SLAMConfig(**overrides)
+    print(f"{args.path}: {len(seq)} frames, {os.cpu_count()} cores, features {cfg.features}")
+    result = run(seq, args.out, cfg, progress=True)
+    m, t = result["metrics"], result["timings"]
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    odo_ate, odo_ms = odometry_ate(seq)
+
+    print("\n| | value |\n|---|---|")
+    print(f"| frames / keyframes / lost | {m['frames']} / {m['keyframes']} / {m['lost_frames']} |")
+    print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {100 * m['ate_rmse_m']:.2f} cm |")
+    print(f"| ATE RMSE, tracker frame-to-frame odometry | {100 * odo_ate:.2f} cm ({odo_ms:.1f} ms/frame median) |")
+    for name in ("every_5", "at_keyframes"):
+        v = m[name]
+        print(f"| map at {name.replace('_', ' ')} ({v['count']} views): PSNR / SSIM / depth L1 | "
+              f"{v['psnr']:.2f} dB / {v['ssim']:.3f} / {v['depth_l1_cm']:.2f} cm |")
+    print(f"| Gaussians | {m['gaussians']} |")
+    print(f"| peak memory (RSS) | {peak_mb:.0f} MB |")
+    print(f"| frames per second, whole pipeline | {t['fps']:.2f} |")
+    print("\n| stage | mean ms | median ms | total s |\n|---|---|---|---|")
+    for k, v in t.items():
+        if isinstance(v, dict) and "mean_ms" in v:
+            print(f"| {k} | {v['mean_ms']:.1f} | {v['median_ms']:.1f} | {v['total_s']:.1f} |")
+        elif isinstance(v, dict):
+            print(f"| {k} | | | {v['total_s']:.1f} |")
+    Path(args.out, "bench.json").write_text(json.dumps(
+        {"metrics": m, "timings": t, "odometry_ate_m": odo_ate, "odometry_ms": odo_ms,
+         "peak_mb": peak_mb}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""`legslam render RUN --trajectory FILE`: colour, depth and feature views of a saved map along
+a camera path, as numbered PNGs (a video-friendly sequence)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="a `legslam run` output folder, or a map .ply (then give --intrinsics and --size)")
+    p.add_argument("--trajectory", default=None,
+                   help="TUM trajectory of camera-to-world poses (default: the run's trajectory.txt)")
+    p.add_argument("--intrinsics", default=None, help="fx,fy,cx,cy (default: the run's camera.json)")
+    p.add_argument("--size", default=None, help="WIDTHxHEIGHT (default: the run's camera.json)")
+    p.add_argument("--every", type=int, default=1, help="render every N-th pose")
+    p.add_argument("--no-features", action="store_true", help="skip the feature views")
+    p.add_argument("--out", default=None, help="output folder (default: RUN/views)")
+
+
+def run(args) -> int:
+    import json
+
+    import cv2
+
+    from .cli import UserError
+    from .eval import TrajectoryError, read_tum
+    from .map import GaussianMap
+    from .pipeline import feature_rgb
+
+    src = Path(args.run)
+    map_path = src / "map.ply" if src.is_dir() else src
+    if not map_path.is_file():
+        raise UserError(f"no map at {map_path}")
+    run_dir = map_path.parent
+    if args.every < 1:
+        raise UserError(f"--every must be at least 1, got {args.every}")
+    cam_file = run_dir / "camera.json"
+    if args.intrinsics and args.size:
+        try:
+            fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
+            width, height = (int(v) for v in args.size.lower().split("x"))
+        except ValueError as e:
+            raise UserError(f"--intrinsics takes fx,fy,cx,cy and --size WIDTHxHEIGHT ({e})") from e
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    elif cam_file.is_file():
+        cam = json.loads(cam_file.read_text())
+        K, width, height = np.array(cam["K"]), cam["width"], cam["height"]
+    else:
+        raise UserError(f"no camera.json beside {map_path}: give --intrinsics fx,fy,cx,cy and --size WxH")
+    traj = Path(args.trajectory) if args.trajectory else run_dir / "trajectory.txt"
+    try:
+        _, poses = read_tum(traj)
+    except (OSError, TrajectoryError) as e:
+        raise UserError(f"cannot read the trajectory {traj}: {e}") from e
+    m = GaussianMap.load(map_path)
+    out = Path(args.out) if args.out else run_dir / "views"
+    out.mkdir(parents=True, exist_ok=True)
+    features = m.num_features > 0 and not args.no_features
+    basis = None
+    picked = range(0, len(poses), args.every)
+    for n, i in enumerate(picked):
+        r = m.render(poses[i], K, width, height, features=features)
+        color = (np.clip(r.color, 0, 1) * 255 + 0.5).astype(np.uint8)
+        cv2.imwrite(str(out / f"{n:06d}_color.png"), cv2.cvtColor(color, cv2.COLOR_RGB2BGR))
+        depth_mm = np.clip(r.depth / np.maximum(r.alpha, 1e-6) * 1000, 0, 65535)
+        cv2.imwrite(str(out / f"{n:06d}_depth.png"), np.where(r.alpha > 0.5, depth_mm, 0).astype(np.uint16))
+        if features:
+            if basis is None:  # one colour basis for the whole sequence, so colours stay put
+                f = r.features.reshape(-1, m.num_features).astype(np.float64)
+                _, _, vt = np.linalg.svd(f[:: max(1, len(f) // 5000)] - f.mean(0), full_matrices=False)
+                basis = vt[:3].T
+            rgb = feature_rgb(r.features, basis)
+            cv2.imwrite(str(out / f"{n:06d}_features.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        print(f"\rview {n + 1}/{len(picked)}", end="", flush=True)
+    print(f"\nwrote {len(picked)} views to {out}/ (colour PNG, depth PNG in mm"
+          f"{', features as colour' if features else ''})")
+    return 0
