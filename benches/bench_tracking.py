@@ -199,7 +199,9 @@ def _parse_config(spec):
     opts = {}
     for item in spec.split(","):
         k, v = item.split("=")
-        if "/" in v:
+        if v.lower() in ("true", "false"):
+            opts[k] = v.lower() == "true"
+        elif "/" in v:
             opts[k] = [int(x) for x in v.split("/")]
         else:
             try:
@@ -214,7 +216,7 @@ def main(argv=None):
     ap.add_argument("path", nargs="?", default=DEFAULT_PATH)
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--variants", action="store_true",
-                    help="also run our config variants (finest level 0 / 2, no photometric)")
+                    help="also run our config variants (finest level 1 / 0, geometry only)")
     ap.add_argument("--no-open3d", action="store_true")
     ap.add_argument("--config", action="append", default=[], metavar="K=V,K=V",
                     help="an extra legslam row with these tracker options "
@@ -245,13 +247,13 @@ def main(argv=None):
     except OSError:
         pass
 
-    runs = [lambda: run_legslam(frames, "legslam (default: levels 1-3)")]
+    runs = [lambda: run_legslam(frames, "legslam (default: levels 2-4)")]
     if args.variants:
         runs += [
-            lambda: run_legslam(frames, "legslam finest_level=0", finest_level=0, levels=4,
-                                iterations=[3, 4, 6, 10]),
-            lambda: run_legslam(frames, "legslam finest_level=2", finest_level=2, levels=2,
-                                iterations=[8, 10]),
+            lambda: run_legslam(frames, "legslam finest_level=1 (levels 1-3)", finest_level=1,
+                                levels=3, iterations=[4, 6, 10]),
+            lambda: run_legslam(frames, "legslam finest_level=0 (levels 0-3)", finest_level=0,
+                                levels=4, iterations=[3, 4, 6, 10]),
             lambda: run_legslam(frames, "legslam geometric only", photometric_weight=0.0),
         ]
     for spec in args.config:
@@ -277,7 +279,8 @@ def main(argv=None):
             name = "".join(c if c.isalnum() or c in "=._-" else "_" for c in label)
             write_tum(os.path.join(args.out, name + ".txt"), stamps, poses)
         rows.append((label, ate, statistics.median(times), statistics.fmean(times), lost))
-        print(f"  done: {label}", flush=True)
+        print(f"  done: {label}: ATE {ate * 100:.2f} cm, median {rows[-1][2]:.2f} ms/frame",
+              flush=True)
 
     print()
     print(f"{'method':<34} {'ATE RMSE [cm]':>13} {'median ms':>10} {'mean ms':>8} {'lost':>5}")

@@ -182,9 +182,9 @@ def test_odometry_follows_the_ground_truth():
 
 
 def test_bad_inputs_raise_value_error(tracker):
-    K = np.array([[500.0, 0, 64], [0, 500, 48], [0, 0, 1]])
-    rgb = np.zeros((96, 128, 3), np.uint8)
-    d = np.ones((96, 128), np.float32)
+    K = np.array([[500.0, 0, 128], [0, 500, 96], [0, 0, 1]])
+    rgb = np.zeros((192, 256, 3), np.uint8)
+    d = np.ones((192, 256), np.float32)
     I = np.eye(4)
     with pytest.raises(ValueError, match="rgb"):
         tracker.track(rgb[:-1], d, K, rgb, d, I)
@@ -211,8 +211,8 @@ def test_bad_inputs_raise_value_error(tracker):
     with pytest.raises(ValueError, match="geometric_huber"):
         Tracker(geometric_huber=-1.0)
     with pytest.raises(ValueError, match="frame is"):
-        big = np.zeros((192, 256, 3), np.uint8)
-        ref = tracker.prepare_reference(big, np.ones((192, 256), np.float32), K, I)
+        big = np.zeros((384, 512, 3), np.uint8)
+        ref = tracker.prepare_reference(big, np.ones((384, 512), np.float32), K, I)
         tracker.track(rgb, d, K, reference=ref)
     # Non-contiguous inputs are accepted (copied).
     res = tracker.track(rgb[:, ::1], np.asfortranarray(d), K, rgb, d, I)
