@@ -133,7 +133,7 @@ impl TrackerConfig {
             ("max_rotation_deg", self.max_rotation_deg),
         ];
         for (name, v) in pos {
-            if !(v > 0.0) || v.is_nan() {
+            if v.is_nan() || v <= 0.0 {
                 return Err(format!("{name} must be positive, got {v}"));
             }
         }
@@ -145,7 +145,7 @@ impl TrackerConfig {
             ("min_inlier_ratio", self.min_inlier_ratio),
         ];
         for (name, v) in nonneg {
-            if !(v >= 0.0) || !v.is_finite() {
+            if !v.is_finite() || v < 0.0 {
                 return Err(format!("{name} must be finite and >= 0, got {v}"));
             }
         }
@@ -316,7 +316,7 @@ pub fn track(
                 "inlier ratio {inlier_ratio:.3} < {}",
                 config.min_inlier_ratio
             ))
-        } else if !(condition <= config.max_condition) {
+        } else if condition.is_nan() || condition > config.max_condition {
             Some(format!(
                 "ill-conditioned normal equations (condition {condition:.3e} > {:.1e})",
                 config.max_condition
