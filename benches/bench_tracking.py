@@ -10,6 +10,17 @@ PATH defaults to ../shared/data/7scenes_tsdf_fusion/data (relative to the reposi
 Open3D (`pip install open3d`) is a benchmark-only dependency; without it its row is skipped.
 Timing covers everything from the decoded frame to the pose (pyramid construction included),
 excluding JPEG/PNG decoding, which is shared by both methods.
+
+Measured 2026-11-22 with `python benches/bench_tracking.py --variants` on the 1000-frame
+7-Scenes redkitchen snapshot, 2 cores shared with other builds (load average 5-7), so the
+times are pessimistic:
+
+    method                             ATE RMSE [cm]  median ms  mean ms  lost
+    legslam (default: levels 2-4)               6.51      12.49    13.01     0
+    legslam finest_level=1 (levels 1-3)         6.92      33.56    35.02     0
+    legslam finest_level=0 (levels 0-3)         7.47     108.40   109.52     0
+    legslam geometric only                     11.92      10.51     9.95     0
+    open3d hybrid (default option)              7.19     794.18   980.88     0
 """
 
 from __future__ import annotations
