@@ -10,6 +10,17 @@ PATH defaults to ../shared/data/7scenes_tsdf_fusion/data (relative to the reposi
 Open3D (`pip install open3d`) is a benchmark-only dependency; without it its row is skipped.
 Timing covers everything from the decoded frame to the pose (pyramid construction included),
 excluding JPEG/PNG decoding, which is shared by both methods.
+
+Measured 2026-11-22 with `python benches/bench_tracking.py --variants` on the 1000-frame
+7-Scenes redkitchen snapshot, 2 cores shared with other builds (load average 5-7), so the
+times are pessimistic:
+
+    method                             ATE RMSE [cm]  median ms  mean ms  lost
+    legslam (default: levels 2-4)               6.51      12.49    13.01     0
+    legslam finest_level=1 (levels 1-3)         6.92      33.56    35.02     0
+    legslam finest_level=0 (levels 0-3)         7.47     108.40   109.52     0
+    legslam geometric only                     11.92      10.51     9.95     0
+    open3d hybrid (default option)              7.19     794.18   980.88     0
 """
 
 from __future__ import annotations
@@ -199,7 +210,9 @@ def _parse_config(spec):
     opts = {}
     for item in spec.split(","):
         k, v = item.split("=")
-        if "/" in v:
+        if v.lower() in ("true", "false"):
+            opts[k] = v.lower() == "true"
+        elif "/" in v:
             opts[k] = [int(x) for x in v.split("/")]
         else:
             try:
@@ -214,7 +227,7 @@ def main(argv=None):
     ap.add_argument("path", nargs="?", default=DEFAULT_PATH)
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--variants", action="store_true",
-                    help="also run our config variants (finest level 0 / 2, no photometric)")
+                    help="also run our config variants (finest level 1 / 0, geometry only)")
     ap.add_argument("--no-open3d", action="store_true")
     ap.add_argument("--config", action="append", default=[], metavar="K=V,K=V",
                     help="an extra legslam row with these tracker options "
@@ -245,13 +258,13 @@ def main(argv=None):
     except OSError:
         pass
 
-    runs = [lambda: run_legslam(frames, "legslam (default: levels 1-3)")]
+    runs = [lambda: run_legslam(frames, "legslam (default: levels 2-4)")]
     if args.variants:
         runs += [
-            lambda: run_legslam(frames, "legslam finest_level=0", finest_level=0, levels=4,
-                                iterations=[3, 4, 6, 10]),
-            lambda: run_legslam(frames, "legslam finest_level=2", finest_level=2, levels=2,
-                                iterations=[8, 10]),
+            lambda: run_legslam(frames, "legslam finest_level=1 (levels 1-3)", finest_level=1,
+                                levels=3, iterations=[4, 6, 10]),
+            lambda: run_legslam(frames, "legslam finest_level=0 (levels 0-3)", finest_level=0,
+                                levels=4, iterations=[3, 4, 6, 10]),
             lambda: run_legslam(frames, "legslam geometric only", photometric_weight=0.0),
         ]
     for spec in args.config:
@@ -277,7 +290,8 @@ def main(argv=None):
             name = "".join(c if c.isalnum() or c in "=._-" else "_" for c in label)
             write_tum(os.path.join(args.out, name + ".txt"), stamps, poses)
         rows.append((label, ate, statistics.median(times), statistics.fmean(times), lost))
-        print(f"  done: {label}", flush=True)
+        print(f"  done: {label}: ATE {ate * 100:.2f} cm, median {rows[-1][2]:.2f} ms/frame",
+              flush=True)
 
     print()
     print(f"{'method':<34} {'ATE RMSE [cm]':>13} {'median ms':>10} {'mean ms':>8} {'lost':>5}")

@@ -182,9 +182,9 @@ def test_odometry_follows_the_ground_truth():
 
 
 def test_bad_inputs_raise_value_error(tracker):
-    K = np.array([[500.0, 0, 64], [0, 500, 48], [0, 0, 1]])
-    rgb = np.zeros((96, 128, 3), np.uint8)
-    d = np.ones((96, 128), np.float32)
+    K = np.array([[500.0, 0, 128], [0, 500, 96], [0, 0, 1]])
+    rgb = np.zeros((192, 256, 3), np.uint8)
+    d = np.ones((192, 256), np.float32)
     I = np.eye(4)
     with pytest.raises(ValueError, match="rgb"):
         tracker.track(rgb[:-1], d, K, rgb, d, I)
@@ -211,8 +211,8 @@ def test_bad_inputs_raise_value_error(tracker):
     with pytest.raises(ValueError, match="geometric_huber"):
         Tracker(geometric_huber=-1.0)
     with pytest.raises(ValueError, match="frame is"):
-        big = np.zeros((192, 256, 3), np.uint8)
-        ref = tracker.prepare_reference(big, np.ones((192, 256), np.float32), K, I)
+        big = np.zeros((384, 512, 3), np.uint8)
+        ref = tracker.prepare_reference(big, np.ones((384, 512), np.float32), K, I)
         tracker.track(rgb, d, K, reference=ref)
     # Non-contiguous inputs are accepted (copied).
     res = tracker.track(rgb[:, ::1], np.asfortranarray(d), K, rgb, d, I)
@@ -242,3 +242,47 @@ def test_odometry_cli_end_to_end(tmp_path):
     assert main(["odometry", DATA, "--out", str(out), "--max-frames", "15", "--quiet"]) == 0
     rows = np.loadtxt(out)
     assert rows.shape == (15, 8) and np.all(np.isfinite(rows))
+
+
+@needs_data
+def test_odometry_cli_with_a_stand_in_loader(tmp_path, monkeypatch, capsys):
+    """Runs `legslam odometry` against the loader interface (open(path, format, stride,
+    max_frames, downscale) -> sequence of frames with rgb/depth/K/pose/timestamp/index),
+    with a stand-in for legslam.datasets so the command is tested before the loaders land."""
+    import sys
+    import types
+
+    from legslam.cli import main
+
+    class Frame:
+        def __init__(self, i):
+            self.rgb, self.depth, self.K, self.pose = load(i)
+            self.timestamp, self.index = i / 30.0, i
+
+    class Seq:
+        def __init__(self, n, stride):
+            self.ids = list(range(0, n * stride, stride))
+
+        def __len__(self):
+            return len(self.ids)
+
+        def __getitem__(self, i):
+            return Frame(self.ids[i])
+
+    def fake_open(path, format="auto", stride=1, max_frames=None, downscale=1):
+        if not os.path.isdir(path):
+            raise FileNotFoundError(path)
+        return Seq(max_frames or 10, stride)
+
+    monkeypatch.setitem(sys.modules, "legslam.datasets", types.SimpleNamespace(open=fake_open))
+    out = tmp_path / "traj.txt"
+    assert main(["odometry", DATA, "--out", str(out), "--max-frames", "12", "--stride", "2"]) == 0
+    rows = np.loadtxt(out)
+    assert rows.shape == (12, 8) and np.all(np.isfinite(rows))
+    np.testing.assert_allclose(np.linalg.norm(rows[:, 4:], axis=1), 1.0, atol=1e-5)
+    # The first pose is the first frame's ground truth (the default start).
+    np.testing.assert_allclose(rows[0, 1:4], load(0)[3][:3, 3], atol=1e-5)
+    captured = capsys.readouterr()
+    assert "frame 12/12" in captured.err and "lost 0" in captured.err
+    assert main(["odometry", "/nonexistent", "--out", str(out)]) == 2
+    assert "cannot read" in capsys.readouterr().err

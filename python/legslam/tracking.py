@@ -44,6 +44,7 @@ class TrackResult:
     inliers: number of inlier correspondences (finest level).
     condition: condition number of the normal equations (inf if singular).
     iterations: Gauss-Newton iterations over all levels.
+    gain: estimated exposure gain applied to the frame intensity (1 if not estimated).
     lost: the alignment cannot be trusted; `reason` says why.
     """
 
@@ -55,6 +56,7 @@ class TrackResult:
     inliers: int
     condition: float
     iterations: int
+    gain: float
     lost: bool
     reason: Optional[str]
 
@@ -120,7 +122,7 @@ class Tracker:
     """Dense RGB-D tracker. Keyword arguments override `DEFAULT_CONFIG`: `levels`,
     `finest_level`, `iterations` (per level, finest first), `min_depth`, `max_depth`,
     `max_depth_diff`, `geometric_huber`, `photometric_huber`, `photometric_weight`,
-    `min_gradient`, `convergence_eps`, `inlier_threshold`, `min_inlier_ratio`, `min_inliers`,
+    `estimate_gain`, `min_gradient`, `convergence_eps`, `inlier_threshold`, `min_inlier_ratio`, `min_inliers`,
     `max_condition`, `max_translation`, `max_rotation_deg`. Unknown or invalid options raise
     ValueError."""
 

@@ -28,6 +28,7 @@ fn config_to_dict<'py>(py: Python<'py>, c: &TrackerConfig) -> PyResult<Bound<'py
     d.set_item("geometric_huber", c.geometric_huber)?;
     d.set_item("photometric_huber", c.photometric_huber)?;
     d.set_item("photometric_weight", c.photometric_weight)?;
+    d.set_item("estimate_gain", c.estimate_gain)?;
     d.set_item("min_gradient", c.min_gradient)?;
     d.set_item("convergence_eps", c.convergence_eps)?;
     d.set_item("inlier_threshold", c.inlier_threshold)?;
@@ -54,6 +55,7 @@ fn config_from_dict(d: &Bound<'_, PyDict>) -> PyResult<TrackerConfig> {
             "geometric_huber" => c.geometric_huber = v.extract().map_err(bad)?,
             "photometric_huber" => c.photometric_huber = v.extract().map_err(bad)?,
             "photometric_weight" => c.photometric_weight = v.extract().map_err(bad)?,
+            "estimate_gain" => c.estimate_gain = v.extract().map_err(bad)?,
             "min_gradient" => c.min_gradient = v.extract().map_err(bad)?,
             "convergence_eps" => c.convergence_eps = v.extract().map_err(bad)?,
             "inlier_threshold" => c.inlier_threshold = v.extract().map_err(bad)?,
@@ -178,6 +180,7 @@ fn result_dict<'py>(py: Python<'py>, r: &TrackResult) -> PyResult<Bound<'py, PyD
     d.set_item("inliers", r.inliers)?;
     d.set_item("condition", r.condition)?;
     d.set_item("iterations", r.iterations)?;
+    d.set_item("gain", r.gain)?;
     d.set_item("lost", r.lost)?;
     d.set_item("reason", r.reason.clone())?;
     Ok(d)

@@ -392,6 +392,7 @@ fn normal_map(lev: &Level) -> Vec<[f32; 4]> {
             return;
         }
         let d = &lev.depth;
+        #[allow(clippy::needless_range_loop)] // x indexes the row and the neighbours
         for x in 1..w.saturating_sub(1) {
             let c = y * w + x;
             let z = d[c];
@@ -418,7 +419,7 @@ fn normal_map(lev: &Level) -> Vec<[f32; 4]> {
                 a[0] * b[1] - a[1] * b[0],
             ];
             let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
-            if !(len > 0.0) || !len.is_finite() {
+            if len.is_nan() || len <= 0.0 || !len.is_finite() {
                 continue;
             }
             let p = lev.point(x, y, z);

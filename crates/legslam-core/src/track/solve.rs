@@ -43,6 +43,10 @@ pub(crate) struct Sums {
     pub sq_photo: f64,
     /// Sum of the depths of the geometric correspondences (for the condition scaling).
     pub depth_sum: f64,
+    /// Sums of the reference and (raw) frame intensities of the photometric terms (for the
+    /// exposure gain).
+    pub sum_ir: f64,
+    pub sum_if: f64,
 }
 
 impl Sums {
@@ -61,6 +65,8 @@ impl Sums {
         self.sq_geo += o.sq_geo;
         self.sq_photo += o.sq_photo;
         self.depth_sum += o.depth_sum;
+        self.sum_ir += o.sum_ir;
+        self.sum_if += o.sum_if;
     }
 }
 
@@ -74,6 +80,8 @@ struct RowAcc {
     sq_geo: f32,
     sq_photo: f32,
     depth_sum: f32,
+    sum_ir: f32,
+    sum_if: f32,
 }
 
 impl RowAcc {
@@ -101,6 +109,8 @@ impl RowAcc {
         s.sq_geo += self.sq_geo as f64;
         s.sq_photo += self.sq_photo as f64;
         s.depth_sum += self.depth_sum as f64;
+        s.sum_ir += self.sum_ir as f64;
+        s.sum_if += self.sum_if as f64;
         *self = RowAcc::default();
     }
 }
@@ -121,6 +131,8 @@ pub(crate) struct Params {
     pub photo_weight: f32,
     pub min_grad_sq: f32,
     pub inlier_threshold: f32,
+    /// Exposure gain applied to the frame intensity: `r_p = I_r - gain * I_f`.
+    pub gain: f32,
 }
 
 impl Params {
@@ -132,6 +144,7 @@ impl Params {
             photo_weight: c.photometric_weight as f32,
             min_grad_sq: (c.min_gradient * c.min_gradient) as f32,
             inlier_threshold: c.inlier_threshold as f32,
+            gain: 1.0,
         }
     }
 }
@@ -141,8 +154,8 @@ impl Params {
 pub(crate) struct PixelResiduals {
     /// Point-to-plane residual (m), its Jacobian, and the depth of the point.
     pub geo: Option<(f32, [f32; 6], f32)>,
-    /// Intensity residual and its Jacobian.
-    pub photo: Option<(f32, [f32; 6])>,
+    /// Intensity residual, its Jacobian, and the interpolated reference intensity.
+    pub photo: Option<(f32, [f32; 6], f32)>,
     /// Index of the associated reference pixel (nearest), for tests.
     pub pixel: usize,
 }
@@ -220,12 +233,12 @@ pub(crate) fn eval_point(
             let gy = w00 * a[2] + w10 * b[2] + w01 * c[2] + w11 * d[2];
             if gx * gx + gy * gy >= p.min_grad_sq {
                 let ir = w00 * a[0] + w10 * b[0] + w01 * c[0] + w11 * d[0];
-                let rp = ir - intensity_f;
+                let rp = ir - p.gain * intensity_f;
                 let gfx = gx * lev.fx * iz;
                 let gfy = gy * lev.fy * iz;
                 let g = [gfx, gfy, -(gfx * x[0] + gfy * x[1]) * iz];
                 let c = cross(&x, &g);
-                out.photo = Some((rp, [g[0], g[1], g[2], c[0], c[1], c[2]]));
+                out.photo = Some((rp, [g[0], g[1], g[2], c[0], c[1], c[2]], ir));
             }
         }
     }
@@ -271,7 +284,7 @@ fn accumulate_chunk(
                     acc.sq_geo += rg * rg;
                 }
             }
-            if let Some((rp, j)) = res.photo {
+            if let Some((rp, j, ir)) = res.photo {
                 let s_n = (rp * p.inv_huber_p).abs();
                 let (w, rho) = if s_n <= 1.0 {
                     (1.0, 0.5 * s_n * s_n)
@@ -281,6 +294,8 @@ fn accumulate_chunk(
                 acc.add(&j, rp, p.photo_weight * w * p.inv_huber_p * p.inv_huber_p);
                 acc.cost += p.photo_weight * rho;
                 acc.sq_photo += rp * rp;
+                acc.sum_ir += ir;
+                acc.sum_if += f.intensity[o + x];
                 s.n_photo += 1;
             }
         }

@@ -209,6 +209,29 @@ fn track_unrelated_frame_is_lost() {
 }
 
 #[test]
+fn track_textureless_plane_is_lost_as_degenerate() {
+    // A uniformly coloured flat wall: sliding along it changes no residual, so the normal
+    // equations are singular in those directions and the pose cannot be trusted.
+    let cfg = TrackerConfig::default();
+    let k = intrinsics();
+    let t = pose_of([0.0; 6]);
+    let rgb = vec![0.5f32; 3 * W * H];
+    let d = vec![2.0f32; W * H];
+    let r = Reference::new(Color::RgbF32(&rgb), &d, &k, &t, &cfg).unwrap();
+    let f = Frame::new(Color::RgbF32(&rgb), &d, &k, &cfg).unwrap();
+    let res = track(&r, &f, &t, &cfg).unwrap();
+    assert!(res.lost, "{res:?}");
+    assert!(res.condition > cfg.max_condition, "{res:?}");
+    assert!(res.pose.iter().all(|v| v.is_finite()));
+    // The textured synthetic room is well conditioned.
+    let (rgb2, d2) = render(&t, &k);
+    let r2 = Reference::new(Color::RgbF32(&rgb2), &d2, &k, &t, &cfg).unwrap();
+    let f2 = Frame::new(Color::RgbF32(&rgb2), &d2, &k, &cfg).unwrap();
+    let res2 = track(&r2, &f2, &t, &cfg).unwrap();
+    assert!(!res2.lost && res2.condition < cfg.max_condition, "{res2:?}");
+}
+
+#[test]
 fn track_rejects_bad_inputs() {
     let cfg = TrackerConfig::default();
     let k = intrinsics();
