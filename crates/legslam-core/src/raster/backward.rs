@@ -109,9 +109,8 @@ pub fn backward(
                 let s = &st.splats[gi as usize];
                 let f = &g.features[gi as usize * k..][..k];
                 let slot = &mut out[j * stride..][..stride];
-                let (xs, ys) = s.pixels(x0, y0, x_end, y_end);
-                for y in ys {
-                    for x in xs.clone() {
+                for y in s.rows(y0, y_end) {
+                    for x in s.row_span(y, x0, x_end) {
                         let p = y * w + x;
                         let lp = (y - y0) * TILE + (x - x0);
                         if j >= st.pixel_end[p] as usize {

@@ -24,24 +24,26 @@ pub(crate) struct Splat {
 }
 
 impl Splat {
-    /// Pixels of the tile at (x0, y0) that lie in the Gaussian's extent, as ranges of x, y.
+    /// Rows of the tile [y0, y_end) that the Gaussian's extent reaches.
     #[inline(always)]
-    pub fn pixels(
-        &self,
-        x0: usize,
-        y0: usize,
-        x_end: usize,
-        y_end: usize,
-    ) -> (std::ops::Range<usize>, std::ops::Range<usize>) {
-        let lo = |c: Real, e: Real, start: usize| {
-            ((c - e).ceil().max(start as Real) as usize).max(start)
-        };
-        let hi =
-            |c: Real, e: Real, end: usize| (((c + e).floor() + 1.0).max(0.0) as usize).min(end);
-        (
-            lo(self.xy.x, self.ext.x, x0)..hi(self.xy.x, self.ext.x, x_end),
-            lo(self.xy.y, self.ext.y, y0)..hi(self.xy.y, self.ext.y, y_end),
-        )
+    pub fn rows(&self, y0: usize, y_end: usize) -> std::ops::Range<usize> {
+        span(self.xy.y - self.ext.y, self.xy.y + self.ext.y, y0, y_end)
+    }
+
+    /// Pixels of row `y` within [x0, x_end) inside the cut-off ellipse
+    /// 0.5 d^T conic d <= sigma_max (widened a hair, so that the alpha test stays the one
+    /// exact decision): solving the quadratic in dx skips the bounding box's empty corners.
+    #[inline(always)]
+    pub fn row_span(&self, y: usize, x0: usize, x_end: usize) -> std::ops::Range<usize> {
+        let (a, b, c) = (self.conic.x, self.conic.y, self.conic.z);
+        let dy = y as Real - self.xy.y;
+        let level = 2.0 * (self.sigma_max + 2e-3);
+        let disc = (b * dy) * (b * dy) - a * (c * dy * dy - level);
+        if !(disc >= 0.0) {
+            return x0..x0;
+        }
+        let (mid, half) = (self.xy.x - b * dy / a, disc.sqrt() / a);
+        span(mid - half - 1e-3, mid + half + 1e-3, x0, x_end)
     }
 }
 
@@ -54,6 +56,14 @@ pub(crate) struct AlphaAt {
     pub dy: Real,
     /// Whether alpha was capped at `alpha_max` (its gradient is then zero).
     pub capped: bool,
+}
+
+/// Integer coordinates in [lo, hi] clipped to [start, end).
+#[inline(always)]
+fn span(lo: Real, hi: Real, start: usize, end: usize) -> std::ops::Range<usize> {
+    let first = lo.ceil().max(start as Real) as usize;
+    let last = ((hi.floor() + 1.0).max(0.0) as usize).min(end);
+    first.max(start)..last.max(first.max(start))
 }
 
 /// The one place that decides whether and how much a Gaussian covers a pixel; forward and
@@ -207,10 +217,9 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
                 // order, but only the pixels inside a Gaussian's extent are visited.
                 for (j, &gi) in list.iter().enumerate() {
                     let s = &splats[gi as usize];
-                    let (xs, ys) = s.pixels(x0, y0, x_end, y_end);
                     let f = &g.features[gi as usize * k..][..k];
-                    for y in ys {
-                        for x in xs.clone() {
+                    for y in s.rows(y0, y_end) {
+                        for x in s.row_span(y, x0, x_end) {
                             let lp = (y - y0) * TILE + (x - x0);
                             if tile.done[lp] {
                                 continue;
