@@ -39,7 +39,7 @@ impl Splat {
         let dy = y as Real - self.xy.y;
         let level = 2.0 * (self.sigma_max + 2e-3);
         let disc = (b * dy) * (b * dy) - a * (c * dy * dy - level);
-        if !(disc >= 0.0) {
+        if disc.is_nan() || disc < 0.0 {
             return x0..x0;
         }
         let (mid, half) = (self.xy.x - b * dy / a, disc.sqrt() / a);
