@@ -12,6 +12,18 @@ pub struct Intrinsics {
 }
 
 impl Intrinsics {
+    /// From (fx, fy, cx, cy) and the image size.
+    pub fn from_array([fx, fy, cx, cy]: [f64; 4], width: usize, height: usize) -> Self {
+        Intrinsics {
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+        }
+    }
+
     /// Checks that the intrinsics describe a usable camera.
     pub fn validate(&self) -> Result<(), String> {
         let finite = [self.fx, self.fy, self.cx, self.cy]

@@ -52,18 +52,6 @@ fn pose(p: &PyReadonlyArray2<'_, f64>) -> PyResult<Pose> {
     Ok(out)
 }
 
-fn intrinsics(k: [f64; 4], width: usize, height: usize) -> Intrinsics {
-    let [fx, fy, cx, cy] = k;
-    Intrinsics {
-        fx,
-        fy,
-        cx,
-        cy,
-        width,
-        height,
-    }
-}
-
 #[pyclass(module = "legslam._core", name = "MapperCore")]
 pub struct PyMapper {
     inner: Mapper,
@@ -123,7 +111,7 @@ impl PyMapper {
         let p = pose(&pose_c2w)?;
         let inner = &mut self.inner;
         engine_call(py, || {
-            inner.add_keyframe(rgb, depth, intrinsics(k, w, h), p)
+            inner.add_keyframe(rgb, depth, Intrinsics::from_array(k, w, h), p)
         })
     }
 
@@ -179,7 +167,7 @@ impl PyMapper {
         let p = pose(&pose_c2w)?;
         let inner = &self.inner;
         let r = engine_call(py, || {
-            inner.render(&p, intrinsics(k, width, height), features)
+            inner.render(&p, Intrinsics::from_array(k, width, height), features)
         })?;
         let d = PyDict::new(py);
         d.set_item(

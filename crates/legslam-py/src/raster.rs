@@ -3,8 +3,9 @@
 //! values (finite, unit quaternions, sizes) by the engine, whose errors become ValueError.
 
 use legslam_core::camera::Intrinsics;
+use legslam_core::map::GaussianMap;
 use legslam_core::raster::{
-    backward, render as engine_render, Camera, Gaussians, ImageGrads, RenderOptions, Rendered,
+    backward, render as engine_render, Camera, ImageGrads, RenderOptions, Rendered,
 };
 use numpy::{
     PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn,
@@ -35,36 +36,10 @@ fn contiguous<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
         .map_err(|_| PyValueError::new_err(format!("{name} must be a C-contiguous array")))
 }
 
-/// The Gaussians of one render, owned so that `backward` sees exactly what was rendered.
-struct Owned {
-    means: Vec<f32>,
-    log_scales: Vec<f32>,
-    quats: Vec<f32>,
-    opacity_logits: Vec<f32>,
-    sh: Vec<f32>,
-    sh_coeffs: usize,
-    features: Vec<f32>,
-    num_features: usize,
-}
-
-impl Owned {
-    fn view(&self) -> Gaussians<'_> {
-        Gaussians {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            quats: &self.quats,
-            opacity_logits: &self.opacity_logits,
-            sh: &self.sh,
-            sh_coeffs: self.sh_coeffs,
-            features: &self.features,
-            num_features: self.num_features,
-        }
-    }
-}
-
 #[pyclass(module = "legslam._core", name = "Render")]
 pub struct PyRender {
-    gaussians: Owned,
+    /// The Gaussians rendered, owned so that `backward` sees exactly what was rendered.
+    gaussians: GaussianMap,
     camera: Camera,
     rendered: Rendered,
 }
@@ -186,7 +161,7 @@ fn render<'py>(
 ) -> PyResult<PyRender> {
     let n = opacity_logits.len();
     let sh_coeffs = if n == 0 { 1 } else { sh.len() / (3 * n) };
-    let gaussians = Owned {
+    let gaussians = GaussianMap {
         means: contiguous("means", &means)?.to_vec(),
         log_scales: contiguous("log_scales", &log_scales)?.to_vec(),
         quats: contiguous("quats", &quats)?.to_vec(),
@@ -195,16 +170,9 @@ fn render<'py>(
         sh_coeffs,
         features: contiguous("features", &features)?.to_vec(),
         num_features: features.shape()[1],
+        ..Default::default()
     };
-    let [fx, fy, cx, cy] = intrinsics;
-    let intr = Intrinsics {
-        fx,
-        fy,
-        cx,
-        cy,
-        width,
-        height,
-    };
+    let intr = Intrinsics::from_array(intrinsics, width, height);
     let camera = Camera::new(intr, &world_to_camera).map_err(PyValueError::new_err)?;
     let opts = RenderOptions {
         sh_degree,
