@@ -121,3 +121,12 @@ def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):
     assert abs(report["psnr"] - mapped["metrics"]["every_5"]["psnr"]) < 0.05
     assert "| psnr |" in capsys.readouterr().out
     assert main(["eval", str(tmp_path)]) == 2
+
+
+def test_cli_demo_runs_end_to_end(tmp_path, capsys):
+    assert main(["demo", "--frames", "6", "--no-features", "--quiet", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "ATE RMSE" in out and "PSNR" in out
+    _, poses = read_tum(tmp_path / "trajectory.txt")
+    assert len(poses) == 6
+    assert (tmp_path / "map.ply").is_file() and (tmp_path / "metrics.json").is_file()

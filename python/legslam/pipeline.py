@@ -75,6 +75,7 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
 
     n = len(slam.poses)
     out: dict = {"frames": n, "keyframes": len(slam.keyframe_frames),
+                 "keyframe_frames": list(slam.keyframe_frames),
                  "lost_frames": int(sum(s == "lost" for s in slam.states))}
     gt = [seq[i].pose for i in range(n)] if n else []
     if n >= 3 and all(p is not None for p in gt):
