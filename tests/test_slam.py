@@ -124,7 +124,10 @@ def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):
 
 
 def test_cli_demo_runs_end_to_end(tmp_path, capsys):
-    assert main(["demo", "--frames", "6", "--no-features", "--quiet", "--out", str(tmp_path)]) == 0
+    quick = tmp_path / "quick.toml"
+    quick.write_text("final_iters = 5\nmap_iters_keyframe = 3\n")
+    assert main(["demo", "--frames", "6", "--no-features", "--quiet", "--config", str(quick),
+                 "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "ATE RMSE" in out and "PSNR" in out
     _, poses = read_tum(tmp_path / "trajectory.txt")
