@@ -1,6 +1,7 @@
 //! The Gaussian map's storage: structure-of-arrays rows that grow, shrink and duplicate
 //! together.
 
+use crate::optim::Groups;
 use crate::raster::Gaussians;
 use crate::Real;
 
@@ -62,6 +63,18 @@ impl GaussianMap {
             sh_coeffs: self.sh_coeffs,
             features: &self.features,
             num_features: self.num_features,
+        }
+    }
+
+    /// The trainable arrays, as the optimiser takes them.
+    pub fn params_mut(&mut self) -> Groups<&mut [Real]> {
+        Groups {
+            means: &mut self.means,
+            log_scales: &mut self.log_scales,
+            quats: &mut self.quats,
+            opacity_logits: &mut self.opacity_logits,
+            sh: &mut self.sh,
+            features: &mut self.features,
         }
     }
 

@@ -342,26 +342,9 @@ impl Mapper {
 
         let t = Instant::now();
         self.stats.add(&grads.means2d, &r.radii);
-        let m = &mut self.map;
-        self.adam.step(
-            Groups {
-                means: &mut m.means[..],
-                log_scales: &mut m.log_scales[..],
-                quats: &mut m.quats[..],
-                opacity_logits: &mut m.opacity_logits[..],
-                sh: &mut m.sh[..],
-                features: &mut m.features[..],
-            },
-            Groups {
-                means: &grads.means[..],
-                log_scales: &grads.log_scales[..],
-                quats: &grads.quats[..],
-                opacity_logits: &grads.opacity_logits[..],
-                sh: &grads.sh[..],
-                features: &grads.features[..],
-            },
-        )?;
-        normalize_quats(&mut m.quats)?;
+        self.adam
+            .step(self.map.params_mut(), Groups::from(&grads))?;
+        normalize_quats(&mut self.map.quats)?;
         self.iteration += 1;
         let interval = self.config.densify.interval;
         if interval > 0 && self.iteration % interval == 0 {
