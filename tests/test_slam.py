@@ -133,3 +133,22 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     _, poses = read_tum(tmp_path / "trajectory.txt")
     assert len(poses) == 6
     assert (tmp_path / "map.ply").is_file() and (tmp_path / "metrics.json").is_file()
+
+
+def test_a_garbage_frame_is_lost_and_tracking_recovers(scene):
+    seq = open_dataset(scene)
+    f0 = seq[0]
+    slam = SLAM(SLAMConfig(features=False, map_iters_frame=1, final_iters=0), f0.K, 160, 120)
+    rng = np.random.default_rng(0)
+    states = []
+    for i in range(12):
+        f = seq[i]
+        if i == 6:  # a frame from another world: noise colour, random depth
+            noise = rng.integers(0, 255, f.rgb.shape, dtype=np.uint8)
+            states.append(slam.step(noise, rng.uniform(0.5, 4, f.depth.shape).astype(np.float32)).state)
+        else:
+            states.append(slam.step(f.rgb, f.depth).state)
+    assert states[6] == "lost" and states[7:] == ["ok"] * 5, states
+    gt = np.stack([seq[i].pose for i in range(12) if i != 6])
+    est = np.stack([p for i, p in enumerate(slam.poses) if i != 6])
+    assert ate(gt, est)["rmse"] < 0.01

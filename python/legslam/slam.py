@@ -163,6 +163,7 @@ class SLAM:
         self.states: list[str] = []
         self.keyframe_frames: list[int] = []
         self._last_kf: Optional[tuple] = None  # (pose, rgb_t, depth_t, frame index)
+        self._last_tracked: Optional[tuple] = None  # (pose, rgb_t, depth_t)
         self.timings: dict[str, list[float]] = {
             "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
         self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
@@ -224,36 +225,46 @@ class SLAM:
             self.mapping_stats.append(self.mapper.train(iters))
         self.timings["mapping"].append(1e3 * (time.perf_counter() - t0))
 
+        if state != "lost":
+            self._last_tracked = (pose, rgb_t, depth_t)
         self.poses.append(pose)
         self.states.append(state)
         self.timings["frame"].append(1e3 * (time.perf_counter() - t_frame))
         return StepResult(i, pose, state, keyframe, reason)
 
     def _predict(self) -> np.ndarray:
-        """Constant velocity: the last motion applied once more."""
-        if len(self.poses) < 2:
-            return self.poses[-1]
+        """Constant velocity from the last two tracked frames; after a lost frame, the last
+        tracked pose (an extrapolated velocity would carry the camera away for good)."""
+        if len(self.poses) < 2 or self.states[-1] == "lost" or self.states[-2] == "lost":
+            return self._last_tracked[0]
         a, b = self.poses[-2], self.poses[-1]
         return b @ np.linalg.inv(a) @ b
 
     def _track(self, rgb_t, depth_t):
+        """Tracks against the map rendered at the predicted pose; where the map covers too
+        little of the view or the alignment fails, against the last tracked frame, then the
+        last keyframe. Lost only when all of them fail."""
         predicted = self._predict()
         w, h = self.track_size
         r = self.mapper.render(predicted, _k4(self.K_track), w, h)
         alpha = r["alpha"]
         trusted = alpha > self.config.reference_alpha
         coverage = float(trusted.mean())
+        references = []
         if coverage >= self.config.min_reference_coverage:
             ref_depth = np.where(trusted, r["depth"] / np.maximum(alpha, 1e-6), 0).astype(np.float32)
             ref_rgb = np.clip(r["color"] / np.maximum(alpha, 1e-6)[..., None], 0, 1)
-            ref_pose = predicted
-        else:
-            ref_pose, ref_rgb, ref_depth, _ = self._last_kf
-        res = self.tracker.track(rgb_t, depth_t, self.K_track, ref_rgb, ref_depth, ref_pose,
-                                 init_pose=predicted)
-        if res.lost:
-            return predicted, "lost", coverage, res.reason
-        return res.pose, "ok", coverage, None
+            references.append((predicted, ref_rgb, ref_depth))
+        references.append(self._last_tracked)
+        references.append(self._last_kf[:3])
+        reason = None
+        for ref_pose, ref_rgb, ref_depth in references:
+            res = self.tracker.track(rgb_t, depth_t, self.K_track, ref_rgb, ref_depth, ref_pose,
+                                     init_pose=predicted)
+            if not res.lost:
+                return res.pose, "ok", coverage, None
+            reason = reason or res.reason
+        return predicted, "lost", coverage, reason
 
     def _is_keyframe(self, i: int, pose: np.ndarray, coverage: float) -> bool:
         c = self.config
