@@ -152,3 +152,16 @@ def test_a_garbage_frame_is_lost_and_tracking_recovers(scene):
     gt = np.stack([seq[i].pose for i in range(12) if i != 6])
     est = np.stack([p for i, p in enumerate(slam.poses) if i != 6])
     assert ate(gt, est)["rmse"] < 0.01
+
+
+def test_frames_without_valid_depth_do_not_stall_the_map(scene):
+    seq = open_dataset(scene)
+    f0 = seq[0]
+    slam = SLAM(SLAMConfig(features=False, map_iters_frame=1, final_iters=0), f0.K, 160, 120)
+    empty = np.zeros_like(f0.depth)
+    assert slam.step(f0.rgb, empty).state == "init"
+    assert slam.step(seq[1].rgb, np.full_like(f0.depth, np.nan)).state == "init"
+    assert slam.mapper.num_gaussians == 0
+    states = [slam.step(seq[i].rgb, seq[i].depth).state for i in range(2, 8)]
+    assert states[0] == "init" and states[1:] == ["ok"] * 5, states
+    assert slam.mapper.num_gaussians > 1000

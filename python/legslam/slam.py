@@ -196,7 +196,6 @@ class SLAM:
             raise ValueError(f"frame {len(self.poses)}: depth must be {self.height}x{self.width}, "
                              f"got {depth.shape}")
         depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
-        rgb_f = rgb.astype(np.float32) / 255.0
         rgb_t = cv2.resize(rgb, self.track_size, interpolation=cv2.INTER_AREA)
         depth_t = cv2.resize(depth, self.track_size, interpolation=cv2.INTER_NEAREST)
         self.timings["preprocessing"].append(1e3 * (time.perf_counter() - t0))
@@ -204,8 +203,10 @@ class SLAM:
         i = len(self.poses)
         t0 = time.perf_counter()
         reason = None
-        if i == 0:
-            pose, state, coverage = np.eye(4), "init", 0.0
+        if self.mapper.num_gaussians == 0:
+            # Nothing to track against yet (first frame, or no valid depth so far): this frame
+            # starts the map where the camera last was.
+            pose, state, coverage = (self.poses[-1] if self.poses else np.eye(4)), "init", 0.0
         else:
             pose, state, coverage, reason = self._track(rgb_t, depth_t)
         self.timings["tracking"].append(1e3 * (time.perf_counter() - t0))
@@ -213,6 +214,7 @@ class SLAM:
         t0 = time.perf_counter()
         keyframe = state != "lost" and self._is_keyframe(i, pose, coverage)
         if keyframe:
+            rgb_f = rgb.astype(np.float32) / 255.0
             kf_id, _ = self.mapper.add_keyframe(rgb_f, depth, _k4(self.K), pose)
             self._last_kf = (pose, rgb_t, depth_t, i)
             self.keyframe_frames.append(i)
@@ -268,7 +270,7 @@ class SLAM:
 
     def _is_keyframe(self, i: int, pose: np.ndarray, coverage: float) -> bool:
         c = self.config
-        if self._last_kf is None:
+        if self._last_kf is None or self.mapper.num_gaussians == 0:
             return True
         kf_pose, _, _, kf_index = self._last_kf
         moved = np.linalg.norm(pose[:3, 3] - kf_pose[:3, 3])
