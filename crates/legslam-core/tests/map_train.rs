@@ -82,3 +82,25 @@ fn options_by_name_round_trip_and_reject_unknown_or_fractional() {
     assert!(c.set("window", 2.5).is_err());
     assert!(c.set("lr_sh", f64::NAN).is_err());
 }
+
+#[test]
+fn growth_from_keyframes_respects_the_cap() {
+    let mut cfg = MapperConfig {
+        finest_level: 0,
+        grow_level: 0,
+        ..Default::default()
+    };
+    cfg.densify.max_gaussians = 1000;
+    let mut m = Mapper::new(cfg).unwrap();
+    let (rgb, depth, k) = wall(64, 48);
+    let (_, added) = m.add_keyframe(rgb, depth, k, EYE).unwrap();
+    assert_eq!(added, 1000);
+    assert_eq!(m.map.len(), 1000);
+    // kept rows are spread over the whole view, not its top rows only
+    let ys: Vec<Real> = m.map.means.chunks(3).map(|p| p[1]).collect();
+    let (lo, hi) = ys
+        .iter()
+        .fold((Real::MAX, Real::MIN), |(a, b), y| (a.min(*y), b.max(*y)));
+    assert!(lo < -0.6 && hi > 0.6, "{lo} {hi}");
+    m.train(3).unwrap();
+}

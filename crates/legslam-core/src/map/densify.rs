@@ -14,7 +14,7 @@ pub struct DensifyConfig {
     pub grad_threshold: Real,
     /// Gaussians larger than this fraction of the scene extent are split, smaller cloned.
     pub split_scale: Real,
-    /// Never grow the map beyond this many Gaussians.
+    /// Never grow the map (by densification or from keyframes) beyond this many Gaussians.
     pub max_gaussians: usize,
 }
 
@@ -24,7 +24,7 @@ impl Default for DensifyConfig {
             interval: 100,
             grad_threshold: 2e-4,
             split_scale: 0.01,
-            max_gaussians: 300_000,
+            max_gaussians: 200_000,
         }
     }
 }

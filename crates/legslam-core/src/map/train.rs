@@ -180,10 +180,27 @@ impl Mapper {
             id,
             &self.config.grow,
         );
+        let added = self.cap_growth(added);
         self.adam.append(added);
         self.keyframes.push(kf);
         self.update_extent();
         Ok((id, added))
+    }
+
+    /// Keeps the map within `max_gaussians`: of the `added` newest rows, keeps an evenly spread
+    /// subset that fits. Returns how many were kept.
+    fn cap_growth(&mut self, added: usize) -> usize {
+        let n = self.map.len();
+        let old = n - added;
+        let budget = self.config.densify.max_gaussians.saturating_sub(old);
+        if added <= budget {
+            return added;
+        }
+        let keep: Vec<bool> = (0..n)
+            .map(|i| i < old || ((i - old) * budget) % added < budget)
+            .collect();
+        self.map.retain(&keep);
+        self.map.len() - old
     }
 
     /// Sets a keyframe's feature target (its compressed patch grid) and gives the Gaussians it
