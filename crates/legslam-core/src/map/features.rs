@@ -55,12 +55,18 @@ impl FeatureGrid {
 
     /// The whole target at `width` x `height`: [height, width, k].
     pub fn upsample(&self, width: usize, height: usize) -> Vec<Real> {
+        let mut out = Vec::new();
+        self.upsample_into(width, height, &mut out);
+        out
+    }
+
+    /// `upsample` into a reused buffer.
+    pub fn upsample_into(&self, width: usize, height: usize, out: &mut Vec<Real>) {
         let k = self.k;
-        let mut out = vec![0.0; width * height * k];
+        out.resize(width * height * k, 0.0);
         for (p, o) in out.chunks_exact_mut(k.max(1)).enumerate() {
             self.sample((p % width) as Real, (p / width) as Real, width, height, o);
         }
-        out
     }
 }
 

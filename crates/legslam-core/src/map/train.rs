@@ -89,6 +89,16 @@ pub struct Mapper {
     rng: Rng,
     stats: GradStats,
     iteration: usize,
+    scratch: Scratch,
+}
+
+/// Per-iteration image buffers, kept between iterations.
+#[derive(Default)]
+struct Scratch {
+    d_color: Vec<Real>,
+    d_depth: Vec<Real>,
+    d_feat: Vec<Real>,
+    target: Vec<Real>,
 }
 
 fn camera(pose: &Pose, intr: Intrinsics) -> Result<Camera, String> {
@@ -118,6 +128,7 @@ impl Mapper {
             rng: Rng::new(config.seed),
             stats: GradStats::default(),
             iteration: 0,
+            scratch: Scratch::default(),
             config,
         })
     }
@@ -300,21 +311,20 @@ impl Mapper {
         report.render_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
-        let target_features = kf
-            .features
-            .as_ref()
-            .filter(|_| with_features)
-            .map(|g| g.upsample(w, h));
-        let mut d_color = vec![0.0; w * h * 3];
-        let mut d_depth = vec![0.0; w * h];
-        let mut d_feat = vec![
-            0.0;
-            if with_features {
-                w * h * self.map.num_features
-            } else {
-                0
+        // Image-sized buffers reused across iterations; the loss overwrites the gradients.
+        let k = self.map.num_features;
+        let sc = &mut self.scratch;
+        sc.d_color.resize(w * h * 3, 0.0);
+        sc.d_depth.resize(w * h, 0.0);
+        sc.d_feat
+            .resize(if with_features { w * h * k } else { 0 }, 0.0);
+        let target_features = match kf.features.as_ref().filter(|_| with_features) {
+            Some(g) => {
+                g.upsample_into(w, h, &mut sc.target);
+                Some(&sc.target[..])
             }
-        ];
+            None => None,
+        };
         let inputs = LossInputs {
             width: w,
             height: h,
@@ -325,19 +335,19 @@ impl Mapper {
                 rendered: &r.depth,
                 target: &level.depth,
             }),
-            features: target_features.as_ref().map(|t| FeatureInputs {
+            features: target_features.map(|t| FeatureInputs {
                 rendered: &r.features,
                 target: t,
-                channels: self.map.num_features,
+                channels: k,
                 mask: None,
             }),
         };
         let terms = self.loss.evaluate(
             &inputs,
             LossGrads {
-                color: &mut d_color,
-                depth: Some(&mut d_depth),
-                features: with_features.then_some(&mut d_feat[..]),
+                color: &mut sc.d_color,
+                depth: Some(&mut sc.d_depth),
+                features: with_features.then_some(&mut sc.d_feat[..]),
             },
         )?;
         report.last = terms;
@@ -349,10 +359,10 @@ impl Mapper {
             &cam,
             &r,
             &ImageGrads {
-                color: Some(&d_color),
-                depth: Some(&d_depth),
+                color: Some(&sc.d_color),
+                depth: Some(&sc.d_depth),
                 alpha: None,
-                features: with_features.then_some(&d_feat[..]),
+                features: with_features.then_some(&sc.d_feat[..]),
             },
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
