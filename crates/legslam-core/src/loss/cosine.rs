@@ -1,6 +1,6 @@
 //! Feature loss: mean over counted pixels of 1 - cos(rendered, target).
 
-use super::{check_len, dots, sum_items, Emit};
+use super::{dots, pixel_counts, sum_items, Emit};
 use crate::Real;
 
 /// Norms below this are clamped to it: cos = r.t / (max(|r|, eps) max(|t|, eps)).
@@ -30,22 +30,7 @@ pub(crate) fn cosine_into(
     grad: &mut [Real],
     emit: Emit,
 ) -> Result<f64, String> {
-    if channels == 0 || rendered.len() % channels != 0 {
-        return Err(format!(
-            "feature loss: the rendered map holds {} values, not a whole number of {channels}-channel pixels",
-            rendered.len()
-        ));
-    }
-    let pixels = rendered.len() / channels;
-    check_len("target feature map", target.len(), rendered.len())?;
-    check_len("feature gradient buffer", grad.len(), rendered.len())?;
-    let counted = match mask {
-        Some(m) => {
-            check_len("feature mask (one per pixel)", m.len(), pixels)?;
-            m.iter().filter(|&&b| b).count()
-        }
-        None => pixels,
-    };
+    let counted = pixel_counts("feature loss", rendered, target, grad, mask, channels)?;
     let inv = if counted == 0 {
         0.0
     } else {

@@ -2,7 +2,7 @@
 //!
 //! The gradient of |d| at d = 0 is taken as 0 (as PyTorch's `sign`).
 
-use super::{check_len, sum_items, Emit};
+use super::{check_len, pixel_counts, sum_items, Emit};
 use crate::Real;
 
 #[inline]
@@ -37,22 +37,8 @@ pub(crate) fn l1_into(
     grad: &mut [Real],
     emit: Emit,
 ) -> Result<f64, String> {
-    if channels == 0 || rendered.len() % channels != 0 {
-        return Err(format!(
-            "L1: the rendered image holds {} values, not a whole number of {channels}-channel pixels",
-            rendered.len()
-        ));
-    }
-    let pixels = rendered.len() / channels;
-    check_len("L1 target", target.len(), rendered.len())?;
-    check_len("L1 gradient buffer", grad.len(), rendered.len())?;
-    let counted = match mask {
-        Some(m) => {
-            check_len("L1 mask (one per pixel)", m.len(), pixels)?;
-            m.iter().filter(|&&b| b).count()
-        }
-        None => pixels,
-    } * channels;
+    let counted = pixel_counts("L1", rendered, target, grad, mask, channels)?;
+    let counted = counted * channels;
     let inv = if counted == 0 {
         0.0
     } else {

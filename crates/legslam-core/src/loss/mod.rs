@@ -197,6 +197,39 @@ impl Emit {
     }
 }
 
+/// Checks a per-pixel term's buffers (`what` names the term in errors) and returns how many
+/// pixels the mask counts (all without a mask).
+pub(crate) fn pixel_counts(
+    what: &str,
+    rendered: &[Real],
+    target: &[Real],
+    grad: &[Real],
+    mask: Option<&[bool]>,
+    channels: usize,
+) -> Result<usize, String> {
+    if channels == 0 || rendered.len() % channels != 0 {
+        return Err(format!(
+            "{what}: the rendered image holds {} values, not a whole number of {channels}-channel pixels",
+            rendered.len()
+        ));
+    }
+    let pixels = rendered.len() / channels;
+    check_len(&format!("{what} target"), target.len(), rendered.len())?;
+    check_len(
+        &format!("{what} gradient buffer"),
+        grad.len(),
+        rendered.len(),
+    )?;
+    let counted = match mask {
+        Some(m) => {
+            check_len(&format!("{what} mask (one per pixel)"), m.len(), pixels)?;
+            m.iter().filter(|&&b| b).count()
+        }
+        None => pixels,
+    };
+    Ok(counted)
+}
+
 pub(crate) fn check_len(name: &str, got: usize, want: usize) -> Result<(), String> {
     if got == want {
         Ok(())
