@@ -140,15 +140,16 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     slam = SLAM(config, first.K, w, h, encoder=encoder)
     bar = Progress(len(seq), progress)
     t0 = time.perf_counter()
+    stamps = []
     for i in range(len(seq)):
         f = first if i == 0 else seq[i]
+        stamps.append(f.timestamp)
         r = slam.step(f.rgb, f.depth)
         bar.update(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
                       f"gaussians {slam.mapper.num_gaussians}")
     slam.finish()
     wall = time.perf_counter() - t0
 
-    stamps = [seq[i].timestamp for i in range(len(seq))]
     write_tum(out / "trajectory.txt", np.array(stamps), np.stack(slam.poses))
     slam.gaussian_map().save(out / "map.ply")
     if slam.pca is not None:
