@@ -104,3 +104,60 @@ fn growth_from_keyframes_respects_the_cap() {
     assert!(lo < -0.6 && hi > 0.6, "{lo} {hi}");
     m.train(3).unwrap();
 }
+
+/// Features trained one or two pyramid levels below the colour still learn a two-region target:
+/// the full-resolution render ends up close to it, on both sides of the boundary.
+#[test]
+fn features_trained_at_a_coarser_level_learn_the_target() {
+    use legslam_core::map::FeatureGrid;
+    for offset in [0, 1, 2] {
+        let mut cfg = MapperConfig {
+            finest_level: 0,
+            grow_level: 0,
+            num_features: 4,
+            feature_level_offset: offset,
+            ..Default::default()
+        };
+        cfg.densify.interval = 0;
+        cfg.adam.lr.features = 0.02;
+        let mut m = Mapper::new(cfg).unwrap();
+        let (rgb, depth, k) = wall(64, 48);
+        let (id, _) = m.add_keyframe(rgb, depth, k, EYE).unwrap();
+        // 8x6 grid: left half (1,0,0,0), right half (0,1,0,0)
+        let data: Vec<Real> = (0..48)
+            .flat_map(|c| {
+                if c % 8 < 4 {
+                    [1.0, 0.0, 0.0, 0.0]
+                } else {
+                    [0.0, 1.0, 0.0, 0.0]
+                }
+            })
+            .collect();
+        let grid = FeatureGrid::new(data, 8, 6, 4).unwrap();
+        let target = grid.upsample(64, 48);
+        m.set_features(id, grid).unwrap();
+        // start from features unrelated to the target
+        m.map
+            .features
+            .iter_mut()
+            .enumerate()
+            .for_each(|(i, f)| *f = [0.3, 0.3, 0.6, 0.5][i % 4]);
+        let first = m.train(1).unwrap().last.feature;
+        let last = m.train(80).unwrap().last.feature;
+        assert!(
+            first > 0.2 && last < 0.25 * first,
+            "offset {offset}: {first} -> {last}"
+        );
+        let r = m.render(&EYE, k, true).unwrap();
+        for (x, y) in [(8, 24), (56, 24)] {
+            let p = y * 64 + x;
+            let (a, b) = (&r.features[p * 4..][..4], &target[p * 4..][..4]);
+            let dot: Real = a.iter().zip(b).map(|(u, v)| u * v).sum();
+            let na: Real = a.iter().map(|u| u * u).sum::<Real>().sqrt();
+            assert!(
+                dot / na > 0.9,
+                "offset {offset} at ({x},{y}): {a:?} vs {b:?}"
+            );
+        }
+    }
+}

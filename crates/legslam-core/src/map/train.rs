@@ -13,7 +13,7 @@ use crate::loss::{
     DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
 };
 use crate::optim::{normalize_quats, Adam, AdamConfig, Groups};
-use crate::raster::{backward, render, Camera, ImageGrads, RenderOptions, Rendered};
+use crate::raster::{backward, render, Camera, Gradients, ImageGrads, RenderOptions, Rendered};
 use crate::rng::Rng;
 use crate::Real;
 
@@ -26,6 +26,9 @@ pub struct MapperConfig {
     /// A keyframe's first `uses_per_level` uses are at the coarsest level, the next at the
     /// level below, and so on down to `finest_level`.
     pub uses_per_level: usize,
+    /// Features are trained this many pyramid levels below the colour (coarser), at most at
+    /// the coarsest level.
+    pub feature_level_offset: usize,
     /// Keyframes drawn from: the most recent this many.
     pub window: usize,
     /// Pyramid level at which a new keyframe's depth seeds new Gaussians.
@@ -46,6 +49,7 @@ impl Default for MapperConfig {
             levels: 3,
             finest_level: 1,
             uses_per_level: 2,
+            feature_level_offset: 1,
             window: 10,
             grow_level: 1,
             sh_degree: 0,
@@ -297,17 +301,20 @@ impl Mapper {
         let li = coarsest
             .saturating_sub(kf.uses / c.uses_per_level.max(1))
             .max(c.finest_level.min(coarsest));
+        // Features are rendered `feature_level_offset` levels coarser: their target is an
+        // upsampled patch grid, and K channels cost K times a colour channel.
+        let lf = (li + c.feature_level_offset).min(coarsest);
         kf.uses += 1;
         let kf = &self.keyframes[ki];
+        let with_features = kf.features.is_some() && self.map.num_features > 0;
         let level = &kf.levels[li];
         let intr = level.intrinsics;
         let (w, h) = (intr.width, intr.height);
-        let with_features = kf.features.is_some() && self.map.num_features > 0;
+        let features_here = with_features && lf == li;
 
         let t = Instant::now();
         let cam = camera(&kf.pose, intr)?;
-        let opts = self.options(true, with_features);
-        let r = render(&self.map.view(), &cam, &opts)?;
+        let r = render(&self.map.view(), &cam, &self.options(true, features_here))?;
         report.render_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
@@ -317,14 +324,10 @@ impl Mapper {
         sc.d_color.resize(w * h * 3, 0.0);
         sc.d_depth.resize(w * h, 0.0);
         sc.d_feat
-            .resize(if with_features { w * h * k } else { 0 }, 0.0);
-        let target_features = match kf.features.as_ref().filter(|_| with_features) {
-            Some(g) => {
-                g.upsample_into(w, h, &mut sc.target);
-                Some(&sc.target[..])
-            }
-            None => None,
-        };
+            .resize(if features_here { w * h * k } else { 0 }, 0.0);
+        if let (true, Some(g)) = (features_here, kf.features.as_ref()) {
+            g.upsample_into(w, h, &mut sc.target);
+        }
         let inputs = LossInputs {
             width: w,
             height: h,
@@ -335,26 +338,25 @@ impl Mapper {
                 rendered: &r.depth,
                 target: &level.depth,
             }),
-            features: target_features.map(|t| FeatureInputs {
+            features: features_here.then(|| FeatureInputs {
                 rendered: &r.features,
-                target: t,
+                target: &sc.target,
                 channels: k,
                 mask: None,
             }),
         };
-        let terms = self.loss.evaluate(
+        let mut terms = self.loss.evaluate(
             &inputs,
             LossGrads {
                 color: &mut sc.d_color,
                 depth: Some(&mut sc.d_depth),
-                features: with_features.then_some(&mut sc.d_feat[..]),
+                features: features_here.then_some(&mut sc.d_feat[..]),
             },
         )?;
-        report.last = terms;
         report.loss_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
-        let grads = backward(
+        let mut grads = backward(
             &self.map.view(),
             &cam,
             &r,
@@ -362,10 +364,17 @@ impl Mapper {
                 color: Some(&sc.d_color),
                 depth: Some(&sc.d_depth),
                 alpha: None,
-                features: with_features.then_some(&sc.d_feat[..]),
+                features: features_here.then_some(&sc.d_feat[..]),
             },
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
+        if with_features && !features_here {
+            let (feature_loss, g) = self.feature_pass(ki, lf, report)?;
+            terms.feature = feature_loss;
+            terms.total += f64::from(self.config.loss.feature) * feature_loss;
+            add_grads(&mut grads, &g);
+        }
+        report.last = terms;
 
         let t = Instant::now();
         self.stats.add(&grads.means2d, &r.radii);
@@ -379,6 +388,56 @@ impl Mapper {
         }
         report.step_s += t.elapsed().as_secs_f64();
         Ok(())
+    }
+
+    /// Renders only the features of keyframe `ki` at pyramid level `lf` and returns the
+    /// feature term and its gradients.
+    fn feature_pass(
+        &mut self,
+        ki: usize,
+        lf: usize,
+        report: &mut TrainReport,
+    ) -> Result<(f64, Gradients), String> {
+        let kf = &self.keyframes[ki];
+        let grid = kf.features.as_ref().ok_or("the keyframe has no features")?;
+        let intr = kf.levels[lf].intrinsics;
+        let (w, h, k) = (intr.width, intr.height, self.map.num_features);
+        let t = Instant::now();
+        let cam = camera(&kf.pose, intr)?;
+        let opts = RenderOptions {
+            color: false,
+            depth: false,
+            alpha: false,
+            ..self.options(false, true)
+        };
+        let r = render(&self.map.view(), &cam, &opts)?;
+        report.render_s += t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let sc = &mut self.scratch;
+        grid.upsample_into(w, h, &mut sc.target);
+        sc.d_feat.resize(w * h * k, 0.0);
+        let inputs = FeatureInputs {
+            rendered: &r.features,
+            target: &sc.target,
+            channels: k,
+            mask: None,
+        };
+        let loss = self.loss.feature_term(&inputs, &mut sc.d_feat)?;
+        report.loss_s += t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let grads = backward(
+            &self.map.view(),
+            &cam,
+            &r,
+            &ImageGrads {
+                features: Some(&sc.d_feat),
+                ..Default::default()
+            },
+        )?;
+        report.backward_s += t.elapsed().as_secs_f64();
+        Ok((loss, grads))
     }
 
     /// Densifies, then prunes; the optimiser's rows follow the map's.
@@ -402,6 +461,20 @@ impl Mapper {
         report.pruned += before - self.map.len() - d.split;
         self.stats.reset(self.map.len());
         Ok(())
+    }
+}
+
+/// `into += from`, group by group (the pose and screen-space gradients are left alone).
+fn add_grads(into: &mut Gradients, from: &Gradients) {
+    for (a, b) in [
+        (&mut into.means, &from.means),
+        (&mut into.log_scales, &from.log_scales),
+        (&mut into.quats, &from.quats),
+        (&mut into.opacity_logits, &from.opacity_logits),
+        (&mut into.sh, &from.sh),
+        (&mut into.features, &from.features),
+    ] {
+        a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
     }
 }
 
@@ -450,6 +523,7 @@ options! {
     "levels" => levels: usize,
     "finest_level" => finest_level: usize,
     "uses_per_level" => uses_per_level: usize,
+    "feature_level_offset" => feature_level_offset: usize,
     "window" => window: usize,
     "grow_level" => grow_level: usize,
     "sh_degree" => sh_degree: usize,
