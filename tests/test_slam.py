@@ -2,6 +2,7 @@
 or mapper cannot meet: each is compared against a run with that part disabled."""
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -165,3 +166,58 @@ def test_frames_without_valid_depth_do_not_stall_the_map(scene):
     states = [slam.step(seq[i].rgb, seq[i].depth).state for i in range(2, 8)]
     assert states[0] == "init" and states[1:] == ["ok"] * 5, states
     assert slam.mapper.num_gaussians > 1000
+
+
+def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, scene, tmp_path):
+    cfg = SLAMConfig(features=False, final_iters=30, mapping_thread=True)
+    threaded = run(open_dataset(scene), tmp_path, cfg, progress=False)
+    m, slam = threaded["metrics"], threaded["slam"]
+    frozen = SLAMConfig(features=False, map_iters_keyframe=0, map_iters_frame=0, final_iters=0)
+    unmapped = run(open_dataset(scene), tmp_path / "frozen", frozen, progress=False)
+    assert m["ate_rmse_m"] < 0.01 and m["lost_frames"] == 0, m
+    # the worker trained beyond the final iterations, and the map is better for it
+    assert sum(s["iterations"] for s in slam.mapping_stats) > cfg.final_iters
+    assert psnr_of(threaded) > psnr_of(unmapped) + 2.0, (psnr_of(threaded), psnr_of(unmapped))
+    assert slam.reference_render_s > 0
+    assert threaded["timings"]["mapping.reference_render"]["total_s"] > 0
+
+
+def test_mapping_thread_owns_the_map_until_finish_and_restarts_an_empty_map(scene):
+    seq = open_dataset(scene)
+    f0 = seq[0]
+    slam = SLAM(SLAMConfig(features=False, final_iters=0, mapping_thread=True), f0.K, 160, 120)
+    assert slam.step(f0.rgb, np.zeros_like(f0.depth)).state == "init"
+    with pytest.raises(RuntimeError, match="finish"):
+        slam.render(np.eye(4))
+    deadline = time.time() + 10
+    while slam._thread.pending and time.time() < deadline:  # the empty keyframe is applied
+        time.sleep(0.01)
+    states = [slam.step(seq[i].rgb, seq[i].depth).state for i in range(1, 10)]
+    assert states[0] == "init" and states[-4:] == ["ok"] * 4, states
+    slam.finish()
+    assert slam.num_gaussians > 1000 and slam.mapper.num_gaussians == slam.num_gaussians
+    assert slam.render(slam.poses[-1])["color"].shape == (120, 160, 3)
+
+
+def test_a_failure_in_the_mapping_thread_reaches_the_tracker():
+    from legslam.mapping_thread import MappingThread
+
+    class Broken:
+        num_gaussians, num_keyframes = 0, 0
+
+        def add_keyframe(self, *args):
+            self.num_gaussians = self.num_keyframes = 1
+            return 0, 1
+
+        def train(self, n):
+            raise ValueError("engine says no")
+
+    t = MappingThread(Broken(), [1.0, 1.0, 0.0, 0.0], (4, 4))
+    t.add_keyframe(None, None, None, np.eye(4))
+    deadline = time.time() + 10
+    while t._error is None and time.time() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(RuntimeError, match="engine says no"):
+        t.reference()
+    with pytest.raises(RuntimeError, match="engine says no"):
+        t.stop()

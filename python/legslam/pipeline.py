@@ -115,6 +115,8 @@ def _timing_table(slam: SLAM, wall_s: float) -> dict:
     stats = slam.mapping_stats
     for key in ("render_s", "loss_s", "backward_s", "step_s"):
         table[f"mapping.{key[:-2]}"] = {"total_s": float(sum(s[key] for s in stats))}
+    if slam.config.mapping_thread:
+        table["mapping.reference_render"] = {"total_s": slam.reference_render_s}
     table["wall_s"] = wall_s
     table["fps"] = len(slam.poses) / wall_s if wall_s > 0 else 0.0
     return table
@@ -146,7 +148,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
         stamps.append(f.timestamp)
         r = slam.step(f.rgb, f.depth)
         bar.update(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
-                      f"gaussians {slam.mapper.num_gaussians}")
+                      f"gaussians {slam.num_gaussians}")
     slam.finish()
     wall = time.perf_counter() - t0
 

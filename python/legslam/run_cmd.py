@@ -21,6 +21,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="a .toml/.json/.yaml file overriding defaults")
     p.add_argument("--no-features", action="store_true",
                    help="no language features (no encoder needed)")
+    p.add_argument("--realtime", action="store_true",
+                   help="map in a worker thread: the frame rate is the tracker's, the map gets "
+                        "the iterations the spare CPU allows (config: mapping_thread)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
 
 
@@ -38,6 +41,8 @@ def run_sequence(seq, name: str, args) -> int:
 
     try:
         overrides = {"features": False} if args.no_features else {}
+        if args.realtime:
+            overrides["mapping_thread"] = True
         config = (SLAMConfig.from_file(args.config, **overrides) if args.config
                   else SLAMConfig(**overrides))
     except (OSError, ValueError) as e:

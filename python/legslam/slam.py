@@ -24,6 +24,7 @@ import numpy as np
 
 from . import _core
 from .map import GaussianMap
+from .mapping_thread import MappingThread
 from .tracking import Tracker
 
 __all__ = ["SLAMConfig", "SLAM", "StepResult"]
@@ -51,6 +52,12 @@ class SLAMConfig:
     map_width: int = 320
     #: Mapping iterations once the sequence has ended.
     final_iters: int = 100
+    #: Map in a worker thread while this one tracks (real time: the frame rate is the
+    #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
+    #: time; `map_iters_keyframe` and `map_iters_frame` are then unused). The tracker's
+    #: reference is the map rendered after each batch at the latest tracked pose.
+    mapping_thread: bool = False
+    mapping_batch: int = 2
     #: A rendered pixel is trusted as a tracking reference where its alpha exceeds this; below
     #: `min_reference_coverage` of trusted pixels, the last keyframe is the reference instead.
     reference_alpha: float = 0.8
@@ -168,7 +175,15 @@ class SLAM:
             "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
         self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
         self.mapping_stats: list[dict] = []
+        #: With a mapping thread: seconds it spent rendering tracking references.
+        self.reference_render_s = 0.0
         self._features = _FeatureFeed(self, encoder) if config.features else None
+        self._thread: Optional[MappingThread] = None
+        if config.mapping_thread:
+            if config.mapping_batch < 1:
+                raise ValueError(f"mapping_batch must be at least 1, got {config.mapping_batch}")
+            self._thread = MappingThread(self.mapper, _k4(self.K_track), self.track_size,
+                                         config.mapping_batch)
 
     def _tracker_options(self) -> dict:
         """The tracker sees images already at `track_width`: its finest level is theirs, and
@@ -203,7 +218,7 @@ class SLAM:
         i = len(self.poses)
         t0 = time.perf_counter()
         reason = None
-        if self.mapper.num_gaussians == 0:
+        if self._map_empty():
             # Nothing to track against yet (first frame, or no valid depth so far): this frame
             # starts the map where the camera last was.
             pose, state, coverage = (self.poses[-1] if self.poses else np.eye(4)), "init", 0.0
@@ -215,16 +230,18 @@ class SLAM:
         keyframe = state != "lost" and self._is_keyframe(i, pose, coverage)
         if keyframe:
             rgb_f = rgb.astype(np.float32) / 255.0
-            kf_id, _ = self.mapper.add_keyframe(rgb_f, depth, _k4(self.K), pose)
+            kf_id, _ = self._mapping.add_keyframe(rgb_f, depth, _k4(self.K), pose)
             self._last_kf = (pose, rgb_t, depth_t, i)
             self.keyframe_frames.append(i)
             if self._features is not None:
                 self._features.submit(kf_id, rgb)
         if self._features is not None:
             self._features.collect()
-        if state != "lost":
+        if state != "lost" and self._thread is None:
             iters = self.config.map_iters_keyframe if keyframe else self.config.map_iters_frame
             self.mapping_stats.append(self.mapper.train(iters))
+        elif state != "lost":
+            self._thread.track_at(pose)
         self.timings["mapping"].append(1e3 * (time.perf_counter() - t0))
 
         if state != "lost":
@@ -233,6 +250,28 @@ class SLAM:
         self.states.append(state)
         self.timings["frame"].append(1e3 * (time.perf_counter() - t_frame))
         return StepResult(i, pose, state, keyframe, reason)
+
+    @property
+    def _mapping(self):
+        """Where keyframes and features go: the mapping thread while it runs, else the mapper."""
+        return self._thread or self.mapper
+
+    @property
+    def num_gaussians(self) -> int:
+        return self._mapping.num_gaussians
+
+    def _map_empty(self) -> bool:
+        if self._thread is not None:
+            return not self._thread.pending and self._thread.num_gaussians == 0
+        return self.mapper.num_gaussians == 0
+
+    def _reference_render(self, predicted: np.ndarray):
+        """(pose, render at the tracking size) to track against: the map at the predicted pose,
+        or with a mapping thread its latest render (None before the first)."""
+        if self._thread is not None:
+            return self._thread.reference() or (None, None)
+        w, h = self.track_size
+        return predicted, self.mapper.render(predicted, _k4(self.K_track), w, h)
 
     def _predict(self) -> np.ndarray:
         """Constant velocity from the last two tracked frames; after a lost frame, the last
@@ -247,16 +286,17 @@ class SLAM:
         little of the view or the alignment fails, against the last tracked frame, then the
         last keyframe. Lost only when all of them fail."""
         predicted = self._predict()
-        w, h = self.track_size
-        r = self.mapper.render(predicted, _k4(self.K_track), w, h)
-        alpha = r["alpha"]
-        trusted = alpha > self.config.reference_alpha
-        coverage = float(trusted.mean())
+        ref_pose, r = self._reference_render(predicted)
         references = []
-        if coverage >= self.config.min_reference_coverage:
+        coverage = 1.0  # unknown until the mapping thread's first render: no keyframe for it
+        if r is not None:
+            alpha = r["alpha"]
+            trusted = alpha > self.config.reference_alpha
+            coverage = float(trusted.mean())
+        if r is not None and coverage >= self.config.min_reference_coverage:
             ref_depth = np.where(trusted, r["depth"] / np.maximum(alpha, 1e-6), 0).astype(np.float32)
             ref_rgb = np.clip(r["color"] / np.maximum(alpha, 1e-6)[..., None], 0, 1)
-            references.append((predicted, ref_rgb, ref_depth))
+            references.append((ref_pose, ref_rgb, ref_depth))
         references.append(self._last_tracked)
         references.append(self._last_kf[:3])
         reason = None
@@ -270,7 +310,7 @@ class SLAM:
 
     def _is_keyframe(self, i: int, pose: np.ndarray, coverage: float) -> bool:
         c = self.config
-        if self._last_kf is None or self.mapper.num_gaussians == 0:
+        if self._last_kf is None or self._map_empty():
             return True
         kf_pose, _, _, kf_index = self._last_kf
         moved = np.linalg.norm(pose[:3, 3] - kf_pose[:3, 3])
@@ -282,13 +322,24 @@ class SLAM:
     # --- end of sequence ---------------------------------------------------------------------
 
     def finish(self) -> None:
-        """Waits for outstanding keyframe features and runs the final mapping iterations."""
+        """Stops the mapping thread, waits for outstanding keyframe features and runs the final
+        mapping iterations."""
+        if self._thread is not None:
+            self._thread.stop()
+            self.mapping_stats.extend(self._thread.stats)
+            self.reference_render_s = self._thread.reference_s
+            self._thread = None
         if self._features is not None:
             self._features.drain()
         if self.config.final_iters > 0:
             self.mapping_stats.append(self.mapper.train(self.config.final_iters))
 
+    def _check_idle(self) -> None:
+        if self._thread is not None:
+            raise RuntimeError("the mapping thread owns the map while SLAM runs: call finish() first")
+
     def gaussian_map(self) -> GaussianMap:
+        self._check_idle()
         return GaussianMap.from_arrays(self.mapper.export())
 
     @property
@@ -297,6 +348,7 @@ class SLAM:
 
     def render(self, pose, K=None, width=None, height=None, features=False) -> dict:
         """Renders the live map (colour, depth, alpha, and features if asked)."""
+        self._check_idle()
         K = self.K if K is None else np.asarray(K)
         return self.mapper.render(np.asarray(pose, dtype=np.float64), _k4(K),
                                   width or self.width, height or self.height, features)
@@ -357,5 +409,5 @@ class _FeatureFeed:
             t0 = time.perf_counter()
             grid = np.ascontiguousarray(self.pca.transform(raw), dtype=np.float32)
             self.slam.feature_timings["compression"].append(1e3 * (time.perf_counter() - t0))
-            self.slam.mapper.set_features(int(key), grid)
+            self.slam._mapping.set_features(int(key), grid)
         self._waiting.clear()
