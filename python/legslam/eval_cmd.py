@@ -17,9 +17,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--every", type=int, default=5, help="evaluate the map at every N-th frame")
 
 
-def run(args) -> int:
+def _open_at_run_size(path, fmt: str, width: int, height: int):
+    """The sequence at the run's image size. camera.json records only the size a run worked
+    at, so a run made with --downscale F is matched by recovering F from it."""
     from .cli import UserError
     from .datasets import DatasetError, open as open_dataset
+
+    try:
+        seq = open_dataset(path, format=fmt)
+        f = max(1, seq.width // width)
+        if f > 1 and (seq.width // f, seq.height // f) == (width, height):
+            seq = open_dataset(path, format=fmt, downscale=f)
+    except (DatasetError, FileNotFoundError) as e:
+        raise UserError(str(e)) from e
+    if (seq.width, seq.height) != (width, height):
+        raise UserError(f"the run's images are {width}x{height} but {path}'s are {seq.width}x{seq.height}, "
+                        "not an integer downscale of them (a different sequence? give --sequence)")
+    return seq
+
+
+def run(args) -> int:
+    from .cli import UserError
     from .eval import ate, depth_l1_cm, psnr, read_tum, rpe, ssim
     from .map import GaussianMap
 
@@ -33,10 +51,8 @@ def run(args) -> int:
     seq_path = args.sequence or cam.get("sequence")
     if not seq_path:
         raise UserError("the run does not record its sequence: give --sequence PATH")
-    try:
-        seq = open_dataset(seq_path, format=args.format)
-    except (DatasetError, FileNotFoundError) as e:
-        raise UserError(str(e)) from e
+    K, w, h = np.array(cam["K"]), cam["width"], cam["height"]
+    seq = _open_at_run_size(seq_path, args.format, w, h)
     _, poses = read_tum(run_dir / "trajectory.txt")
     if len(poses) > len(seq):
         raise UserError(f"the trajectory has {len(poses)} poses but {seq_path} only {len(seq)} frames "
@@ -49,7 +65,6 @@ def run(args) -> int:
         report.update(ate_rmse_cm=100 * a["rmse"], ate_mean_cm=100 * a["mean"],
                       rpe_trans_rmse_cm=100 * r["trans"]["rmse"], rpe_rot_rmse_deg=r["rot"]["rmse"])
     m = GaussianMap.load(run_dir / "map.ply")
-    K, w, h = np.array(cam["K"]), cam["width"], cam["height"]
     vals = {"psnr": [], "ssim": [], "depth_l1_cm": []}
     for i in range(0, len(poses), args.every):
         f = seq[i]
