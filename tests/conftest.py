@@ -31,3 +31,23 @@ def small_synthetic(tmp_path_factory) -> Path:
     from legslam.datasets import synthetic
 
     return synthetic.generate(tmp_path_factory.mktemp("synthetic"), n_frames=12, width=160, height=120, seed=0)
+
+
+@pytest.fixture(scope="session")
+def language_run(tmp_path_factory):
+    """(scene, run folder, pipeline result) of a run with language features on a 20-frame
+    160x120 built-in scene, made once per session; skips when the default encoder is not
+    cached. Tests that change the run folder work on a copy."""
+    from legslam.datasets import open as open_dataset, synthetic
+    from legslam.models import resolve
+    from legslam.pipeline import run
+    from legslam.slam import SLAMConfig
+
+    try:
+        resolve("default")
+    except FileNotFoundError as e:
+        pytest.skip(f"default encoder not cached ({e})")
+    scene = synthetic.generate(tmp_path_factory.mktemp("scene"), n_frames=20, width=160, height=120, seed=5)
+    out = tmp_path_factory.mktemp("run")
+    result = run(open_dataset(scene), out, SLAMConfig(pca_keyframes=2, final_iters=60), progress=False)
+    return scene, out, result

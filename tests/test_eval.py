@@ -252,6 +252,22 @@ def test_segmentation_hand_case():
         E.segmentation_metrics(pred + 10, gt, num_classes=4)
 
 
+def test_segmentation_counts_over_views_equal_the_metrics_of_all_pixels_at_once():
+    rng = np.random.default_rng(0)
+    gts = [rng.integers(-1, 5, (6, 7)) for _ in range(3)]
+    preds = [rng.integers(-1, 5, (6, 7)) for _ in range(3)]
+    counts = E.SegmentationCounts(5)
+    for p, g in zip(preds, gts):
+        counts.add(p, g)
+    whole = E.segmentation_metrics(np.concatenate(preds), np.concatenate(gts), 5)
+    summed = counts.metrics()
+    np.testing.assert_array_equal(summed["confusion"], whole["confusion"])
+    np.testing.assert_allclose(summed["iou"], whole["iou"])
+    assert summed["miou"] == whole["miou"] and summed["pixel_acc"] == whole["pixel_acc"]
+    with pytest.raises(ValueError, match="every ground-truth pixel is ignored"):
+        E.SegmentationCounts(5).add(preds[0], np.full((6, 7), -1)).metrics()
+
+
 # --- geometry check -----------------------------------------------------------------------
 
 def test_depth_reprojection_on_a_plane():

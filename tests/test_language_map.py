@@ -1,33 +1,14 @@
 """Language features distilled into the map, end to end with the default encoder: rendered
 features agree with the encoder's own at frames the map was not trained on, a by-example
 query picked on one frame lights up the same class in another, and `legslam query` writes
-its images. Skips when the default encoder is not in the cache (scripts/setup.sh fetches it)."""
+its images. Skips when the default encoder is not in the cache (scripts/setup.sh fetches it);
+the run is conftest's `language_run`."""
 
 import numpy as np
-import pytest
 
 from legslam.cli import main
 from legslam.datasets import open as open_dataset
-from legslam.pipeline import run
 from legslam.query import heatmap, query_from_pixel
-from legslam.slam import SLAMConfig
-
-
-@pytest.fixture(scope="module")
-def language_run(tmp_path_factory):
-    from legslam.models import resolve
-
-    try:
-        resolve("default")
-    except FileNotFoundError as e:
-        pytest.skip(f"default encoder not cached ({e})")
-    from legslam.datasets import synthetic
-
-    scene = synthetic.generate(tmp_path_factory.mktemp("scene"), n_frames=20, width=160, height=120, seed=5)
-    out = tmp_path_factory.mktemp("run")
-    cfg = SLAMConfig(pca_keyframes=2, final_iters=60)
-    result = run(open_dataset(scene), out, cfg, progress=False)
-    return scene, out, result
 
 
 def test_rendered_features_match_the_encoder_on_frames_not_trained_on(language_run):

@@ -14,7 +14,7 @@ COMMANDS = {
     "run": ("legslam.run_cmd", "run SLAM with language features over an RGB-D sequence"),
     "query": ("legslam.query_cmd", "heat maps and masks of text or by-example queries on a saved map"),
     "render": ("legslam.render_cmd", "render colour/depth/feature views of a saved map along a trajectory"),
-    "eval": ("legslam.eval_cmd", "ATE, RPE, PSNR/SSIM/depth L1 of a run against ground truth"),
+    "eval": ("legslam.eval_cmd", "ATE, RPE, PSNR/SSIM/depth L1 (and mIoU, given labels) of a run against ground truth"),
     "models": ("legslam.models", "fetch the default image encoder into the cache, or list cached models"),
     "export-models": ("legslam.features.export", "export DINOv2 ViT-B/14-reg and CLIP ViT-B/16 text to ONNX (needs torch)"),
     "odometry": ("legslam.odometry", "frame-to-frame RGB-D odometry over a sequence"),

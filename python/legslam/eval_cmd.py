@@ -1,5 +1,6 @@
 """`legslam eval RUN`: a run's trajectory and map against the sequence's ground truth: ATE,
-RPE, PSNR / SSIM / depth L1 of the map rendered at estimated poses; a table and eval.json."""
+RPE, PSNR / SSIM / depth L1 of the map rendered at estimated poses and, when the frames carry
+class labels and the map language features, mIoU (see semantic_eval); a table and eval.json."""
 
 from __future__ import annotations
 
@@ -11,15 +12,42 @@ import numpy as np
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from .text_cli import add_text_model_options
+
     p.add_argument("run", help="a `legslam run` output folder")
     p.add_argument("--sequence", default=None, help="the input sequence (default: as recorded in camera.json)")
     p.add_argument("--format", default="auto")
     p.add_argument("--every", type=int, default=5, help="evaluate the map at every N-th frame")
+    p.add_argument("--semantic", choices=("auto", "text", "example", "off"), default="auto",
+                   help="mIoU when the sequence has labels: by text queries of the class names "
+                        "(open-vocabulary; needs the text model), by example (class prototypes "
+                        "from a few labelled views; no text model), or auto: text when the "
+                        "model loads, else by example")
+    add_text_model_options(p)
+
+
+def _open_at_run_size(path, fmt: str, width: int, height: int):
+    """The sequence at the run's image size. camera.json records only the size a run worked
+    at, so a run made with --downscale F is matched by recovering F from it."""
+    from .cli import UserError
+    from .datasets import DatasetError, open as open_dataset
+
+    try:
+        seq = open_dataset(path, format=fmt)
+        f = max(1, seq.width // width)
+        if f > 1 and (seq.width // f, seq.height // f) == (width, height):
+            seq = open_dataset(path, format=fmt, downscale=f)
+    except (DatasetError, FileNotFoundError) as e:
+        raise UserError(str(e)) from e
+    if (seq.width, seq.height) != (width, height):
+        raise UserError(f"the run's images are {width}x{height} but {path}'s are {seq.width}x{seq.height}, "
+                        "not an integer downscale of them (a different sequence? give --sequence)")
+    return seq
 
 
 def run(args) -> int:
     from .cli import UserError
-    from .datasets import DatasetError, open as open_dataset
+    from .datasets import DatasetError
     from .eval import ate, depth_l1_cm, psnr, read_tum, rpe, ssim
     from .map import GaussianMap
 
@@ -33,37 +61,95 @@ def run(args) -> int:
     seq_path = args.sequence or cam.get("sequence")
     if not seq_path:
         raise UserError("the run does not record its sequence: give --sequence PATH")
-    try:
-        seq = open_dataset(seq_path, format=args.format)
-    except (DatasetError, FileNotFoundError) as e:
-        raise UserError(str(e)) from e
+    K, w, h = np.array(cam["K"]), cam["width"], cam["height"]
+    seq = _open_at_run_size(seq_path, args.format, w, h)
     _, poses = read_tum(run_dir / "trajectory.txt")
     if len(poses) > len(seq):
         raise UserError(f"the trajectory has {len(poses)} poses but {seq_path} only {len(seq)} frames "
                         "(was the run made with --stride or a different sequence?)")
+
+    def frame(i):
+        try:
+            return seq[i]
+        except DatasetError as e:  # e.g. a label image of the wrong size
+            raise UserError(str(e)) from e
+
     report: dict = {"frames": len(poses)}
-    gt = [seq[i].pose for i in range(len(poses))]
+    gt = [frame(i).pose for i in range(len(poses))]
     if all(g is not None for g in gt):
         a = ate(np.stack(gt), poses)
         r = rpe(np.stack(gt), poses)
         report.update(ate_rmse_cm=100 * a["rmse"], ate_mean_cm=100 * a["mean"],
                       rpe_trans_rmse_cm=100 * r["trans"]["rmse"], rpe_rot_rmse_deg=r["rot"]["rmse"])
     m = GaussianMap.load(run_dir / "map.ply")
-    K, w, h = np.array(cam["K"]), cam["width"], cam["height"]
+    views = list(range(0, len(poses), args.every))
+    sem = _semantic_score(args, seq, run_dir, m, views, lambda i: frame(i).labels,
+                          lambda i: m.render(poses[i], K, w, h, features=True).features)
     vals = {"psnr": [], "ssim": [], "depth_l1_cm": []}
-    for i in range(0, len(poses), args.every):
-        f = seq[i]
-        out = m.render(poses[i], K, w, h, features=False)
+    for i in views:
+        f = frame(i)
+        out = m.render(poses[i], K, w, h, features=sem is not None)
         color = np.clip(out.color, 0, 1)
         target = f.rgb.astype(np.float32) / 255
         vals["psnr"].append(psnr(color, target, data_range=1.0))
         vals["ssim"].append(ssim(color, target, data_range=1.0))
         vals["depth_l1_cm"].append(depth_l1_cm(out.depth, f.depth))
+        if sem is not None:
+            sem.add(i, out.features, f.labels)
     report.update({k: float(np.mean(v)) for k, v in vals.items()}, views=len(vals["psnr"]))
     report["gaussians"] = len(m)
-    print("| metric | value |\n|---|---|")
-    for k, v in report.items():
-        print(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |")
+    if sem is not None and sem.views == 0:
+        print("note: no semantic metrics: every evaluated view is a support view (use a smaller --every)")
+    elif sem is not None:
+        report.update(sem.report())
+    _print_table(report)
     (run_dir / "eval.json").write_text(json.dumps(report, indent=2))
     print(f"saved {run_dir / 'eval.json'}")
     return 0
+
+
+def _semantic_score(args, seq, run_dir: Path, gmap, views: list, labels_of, features_of):
+    """The semantic scorer --semantic asks for, or None when there is nothing to score: no
+    labels (silently, unless asked for) or no language features (with a note)."""
+    from .cli import UserError
+    from .semantic_eval import NoPrototypes, by_example, by_text
+    from .text_cli import run_text_queries
+
+    if args.semantic == "off":
+        return None
+    asked = args.semantic != "auto"
+    labels = labels_of(views[0])
+    why = ("the sequence has no labels" if labels is None
+           else f"{run_dir / 'map.ply'} has no language features" if gmap.num_features == 0 else None)
+    if why:
+        if asked:
+            raise UserError(f"--semantic {args.semantic}: {why}")
+        if labels is not None:
+            print(f"note: no semantic metrics: {why}")
+        return None
+    if args.semantic != "example":
+        try:
+            if not seq.class_names:
+                raise UserError(f"{seq.path} has no class list, which text queries are made from")
+            return by_text(run_text_queries(run_dir, gmap.num_features, seq.class_names, args), seq.class_names)
+        except UserError as e:
+            if asked:
+                raise
+            print(f"note: no text queries, so mIoU is by example (NOT open-vocabulary): {e}")
+    try:
+        return by_example(views, labels_of, features_of, seq.class_names)
+    except NoPrototypes as e:
+        if asked:
+            raise UserError(f"--semantic example: {e}") from e
+        print(f"note: no semantic metrics: {e}")
+        return None
+
+
+def _print_table(report: dict) -> None:
+    rows = []
+    for k, v in report.items():
+        # Per-class values get a row each; classes that occur nowhere (None) are left out.
+        rows += [(f"{k}[{name}]", x) for name, x in v.items() if x is not None] if isinstance(v, dict) else [(k, v)]
+    print("| metric | value |\n|---|---|")
+    for k, v in rows:
+        print(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |")

@@ -12,6 +12,8 @@ import numpy as np
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from .text_cli import add_text_model_options
+
     p.add_argument("run", help="a `legslam run` output folder (map.ply, trajectory.txt, camera.json)")
     p.add_argument("texts", nargs="*", help='text queries, e.g. "chair" "plant" (need the text model)')
     p.add_argument("--frame", type=int, default=0, help="show the queries at this frame's pose")
@@ -20,10 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="query by example: the feature rendered at pixel X,Y of frame N")
     p.add_argument("--labels", default=None, help="comma-separated labels: a segmentation image")
     p.add_argument("--threshold", type=float, default=0.7, help="cosine similarity of the mask (default 0.7)")
-    p.add_argument("--text-model", default="clip_vitb16_text",
-                   help="CLIP text ONNX (a cached model name or a path; see `legslam export-models`)")
-    p.add_argument("--projection", default=None,
-                   help="Talk2DINO projection weights (.npz) for a ViT-B/14 map")
+    add_text_model_options(p)
     p.add_argument("--out", default=None, help="output folder (default: RUN/queries)")
 
 
@@ -45,7 +44,6 @@ class RunFolder:
         cam = json.loads((path / "camera.json").read_text())
         self.K, self.width, self.height = np.array(cam["K"]), cam["width"], cam["height"]
         _, self.poses = read_tum(path / "trajectory.txt")
-        self.pca_path = path / "pca.npz"
 
     def pose(self, frame: int) -> np.ndarray:
         from .cli import UserError
@@ -68,24 +66,10 @@ def _parse_example(text: str) -> tuple[int, int, int]:
 
 
 def _text_queries(run: RunFolder, labels: list[str], args) -> np.ndarray:
-    from .cli import UserError
-    from .features import PCA, Talk2DinoProjection, TextEncoder
-    from .query import text_queries
+    from .text_cli import run_text_queries
 
-    try:
-        encoder = TextEncoder(args.text_model)
-    except FileNotFoundError as e:
-        raise UserError(f"text queries need the CLIP text model: {e}. Query by example "
-                        "(--example N:X,Y) works without it.") from e
-    if not run.pca_path.is_file():
-        raise UserError(f"{run.path} has no pca.npz: text queries need the run's feature compression")
-    projection = Talk2DinoProjection.load(args.projection) if args.projection else None
-    pca = PCA.load(run.pca_path)
-    q = text_queries(labels, encoder, projection, pca)
-    if q.shape[1] != run.map.num_features:
-        raise UserError(f"the text model gives {q.shape[1]}-d queries, the map has "
-                        f"{run.map.num_features}-d features")
-    return q
+    return run_text_queries(run.path, run.map.num_features, labels, args,
+                            hint=" Query by example (--example N:X,Y) works without it.")
 
 
 def _legend_image(labels_img: np.ndarray, names: list[str], rgb: np.ndarray) -> np.ndarray:

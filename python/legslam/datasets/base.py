@@ -192,7 +192,7 @@ class Sequence:
             raise DatasetError(f"{where}: colour is {rgb.shape[1::-1]} and depth {depth.shape[::-1]}, "
                                f"expected both {w}x{h} (the sequence's image size)")
         if labels is not None and labels.shape != (h, w):
-            raise DatasetError(f"{where}: labels are {labels.shape[::-1]}, expected {w}x{h}")
+            raise DatasetError(f"{where}: labels are {labels.shape[1]}x{labels.shape[0]}, expected {w}x{h}")
         rgb, depth, labels = self._transform(rgb, depth, labels)
         return Frame(rgb=rgb, depth=depth, K=self.K.copy(), pose=self._pose(i),
                      timestamp=float(self._timestamp(i)), index=int(i), labels=labels)

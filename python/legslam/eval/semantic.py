@@ -32,22 +32,42 @@ def _counts(pred, gt, num_classes: int, ignore_index: int) -> tuple:
     return cm.reshape(num_classes, num_classes), np.bincount(g[~hit], minlength=num_classes)
 
 
+class SegmentationCounts:
+    """The counts behind segmentation_metrics, summed over any number of views (`add` one
+    view at a time) so that metrics over a whole sequence need no view kept in memory."""
+
+    def __init__(self, num_classes: int, ignore_index: int = IGNORE_LABEL):
+        self.num_classes, self.ignore_index = num_classes, ignore_index
+        self.confusion = np.zeros((num_classes, num_classes), np.int64)
+        self.misses = np.zeros(num_classes, np.int64)
+
+    def add(self, pred, gt) -> "SegmentationCounts":
+        cm, misses = _counts(pred, gt, self.num_classes, self.ignore_index)
+        self.confusion += cm
+        self.misses += misses
+        return self
+
+    def metrics(self) -> dict:
+        """As segmentation_metrics, over every view added."""
+        cm = self.confusion
+        tp = np.diag(cm).astype(np.float64)
+        gt_count = cm.sum(1) + self.misses
+        pred_count = cm.sum(0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            iou = tp / (gt_count + pred_count - tp)
+            acc = tp / gt_count
+        total = gt_count.sum()
+        if total == 0:
+            raise ValueError("every ground-truth pixel is ignored")
+        nanmean = lambda x: float(np.nanmean(x)) if np.isfinite(x).any() else float("nan")  # noqa: E731
+        return {"iou": iou, "miou": nanmean(iou), "acc": acc, "macc": nanmean(acc),
+                "pixel_acc": float(tp.sum() / total), "confusion": cm.copy()}
+
+
 def segmentation_metrics(pred, gt, num_classes: int, ignore_index: int = IGNORE_LABEL) -> dict:
     """{"iou": (C,) per-class IoU, "miou", "acc": (C,) per-class accuracy, "macc",
     "pixel_acc", "confusion": (C, C)}; class means over the classes that are not NaN."""
-    cm, misses = _counts(pred, gt, num_classes, ignore_index)
-    tp = np.diag(cm).astype(np.float64)
-    gt_count = cm.sum(1) + misses
-    pred_count = cm.sum(0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iou = tp / (gt_count + pred_count - tp)
-        acc = tp / gt_count
-    total = gt_count.sum()
-    if total == 0:
-        raise ValueError("every ground-truth pixel is ignored")
-    nanmean = lambda x: float(np.nanmean(x)) if np.isfinite(x).any() else float("nan")  # noqa: E731
-    return {"iou": iou, "miou": nanmean(iou), "acc": acc, "macc": nanmean(acc),
-            "pixel_acc": float(tp.sum() / total), "confusion": cm}
+    return SegmentationCounts(num_classes, ignore_index).add(pred, gt).metrics()
 
 
 def miou(pred, gt, num_classes: int, ignore_index: int = IGNORE_LABEL) -> float:

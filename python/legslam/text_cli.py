@@ -1,0 +1,37 @@
+"""The CLIP text model on the command line: its options, and text queries for a saved run,
+shared by `legslam query` and `legslam eval`."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def add_text_model_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--text-model", default="clip_vitb16_text",
+                   help="CLIP text ONNX (a cached model name or a path; see `legslam export-models`)")
+    p.add_argument("--projection", default=None,
+                   help="Talk2DINO projection weights (.npz) for a ViT-B/14 map")
+
+
+def run_text_queries(run_dir: Path, num_features: int, labels: list[str], args, hint: str = "") -> np.ndarray:
+    """Query vectors [C, num_features] for the labels, in the space of the run's map (its
+    pca.npz); UserError, ending with `hint`, when the text model or the compression is missing."""
+    from .cli import UserError
+    from .features import PCA, Talk2DinoProjection, TextEncoder
+    from .query import text_queries
+
+    try:
+        encoder = TextEncoder(args.text_model)
+    except FileNotFoundError as e:
+        raise UserError(f"text queries need the CLIP text model: {e}.{hint}") from e
+    pca_path = Path(run_dir) / "pca.npz"
+    if not pca_path.is_file():
+        raise UserError(f"{run_dir} has no pca.npz: text queries need the run's feature compression")
+    projection = Talk2DinoProjection.load(args.projection) if args.projection else None
+    q = text_queries(labels, encoder, projection, PCA.load(pca_path))
+    if q.shape[1] != num_features:
+        raise UserError(f"the text model gives {q.shape[1]}-d queries, the map has {num_features}-d features")
+    return q
