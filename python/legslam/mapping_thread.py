@@ -29,6 +29,7 @@ class MappingThread:
         self._submitted = 0
         self._applied = 0
         self._num_gaussians = mapper.num_gaussians
+        self._iterations_since_keyframe = 0
         self._error: Optional[BaseException] = None
         self._stopping = threading.Event()
         #: Per-batch mapper.train() reports, and seconds spent on tracking references.
@@ -67,6 +68,11 @@ class MappingThread:
         """Whether queued keyframes have not reached the map yet."""
         return self._applied < self._submitted
 
+    def trained(self, iterations: int) -> bool:
+        """Whether every queued keyframe is in the map and the latest has had this many
+        iterations since: the mapper keeps up."""
+        return not self.pending and self._iterations_since_keyframe >= iterations
+
     @property
     def num_gaussians(self) -> int:
         return self._num_gaussians
@@ -87,6 +93,7 @@ class MappingThread:
         name, args = command
         getattr(self._mapper, name)(*args)
         if name == "add_keyframe":
+            self._iterations_since_keyframe = 0
             self._applied += 1
             self._num_gaussians = self._mapper.num_gaussians
 
@@ -107,6 +114,7 @@ class MappingThread:
                 if m.num_keyframes == 0 or m.num_gaussians == 0:
                     continue
                 self.stats.append(m.train(self._batch))
+                self._iterations_since_keyframe += self._batch
                 self._num_gaussians = m.num_gaussians
                 pose = self._reference_pose
                 if pose is not None:

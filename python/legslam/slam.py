@@ -14,6 +14,7 @@ The Python side decides what to do; the engine (legslam._core) does the arithmet
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -54,8 +55,10 @@ class SLAMConfig:
     final_iters: int = 100
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
     #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
-    #: time; `map_iters_keyframe` and `map_iters_frame` are then unused). The tracker's
-    #: reference is the map rendered after each batch at the latest tracked pose.
+    #: time, on a thread pool of its own). Low overlap then makes a keyframe only once the
+    #: previous one has had `map_iters_keyframe` iterations; `map_iters_frame` is unused.
+    #: The tracker's reference is the map rendered after each batch at the latest tracked
+    #: pose.
     mapping_thread: bool = False
     mapping_batch: int = 2
     #: A rendered pixel is trusted as a tracking reference where its alpha exceeds this; below
@@ -164,7 +167,8 @@ class SLAM:
         mapper_opts.setdefault("finest_level", level)
         mapper_opts.setdefault("grow_level", level)
         mapper_opts.setdefault("levels", level + 3)
-        self.mapper = _core.MapperCore(mapper_opts)
+        threads = (os.cpu_count() or 2) if config.mapping_thread else None
+        self.mapper = _core.MapperCore(mapper_opts, threads=threads)
         self.tracker = Tracker(**self._tracker_options())
         self.poses: list[np.ndarray] = []
         self.states: list[str] = []
@@ -313,10 +317,13 @@ class SLAM:
         if self._last_kf is None or self._map_empty():
             return True
         kf_pose, _, _, kf_index = self._last_kf
+        # Fresh Gaussians are faint until trained: with a mapping thread behind, low coverage
+        # says little, and counting it would flood the mapper with keyframes.
+        coverage_counts = self._thread is None or self._thread.trained(c.map_iters_keyframe)
         moved = np.linalg.norm(pose[:3, 3] - kf_pose[:3, 3])
         return (moved > c.keyframe_translation
                 or _rotation_deg(kf_pose, pose) > c.keyframe_rotation
-                or coverage < c.keyframe_overlap
+                or (coverage_counts and coverage < c.keyframe_overlap)
                 or i - kf_index >= c.keyframe_max_gap)
 
     # --- end of sequence ---------------------------------------------------------------------
