@@ -18,7 +18,7 @@ import numpy as np
 
 from .slam import SLAM, SLAMConfig
 
-__all__ = ["run", "evaluate", "feature_rgb"]
+__all__ = ["run", "evaluate", "feature_rgb", "feature_basis"]
 
 
 class Progress:
@@ -44,15 +44,20 @@ class Progress:
               file=sys.stderr, flush=True)
 
 
+def feature_basis(features: np.ndarray) -> np.ndarray:
+    """K x 3: the first three principal directions of HxWxK features (from about 5000 pixels)."""
+    x = features.reshape(-1, features.shape[-1]).astype(np.float64)
+    centred = x - x.mean(0)
+    _, _, vt = np.linalg.svd(centred[:: max(1, len(x) // 5000)], full_matrices=False)
+    return vt[:3].T
+
+
 def feature_rgb(features: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
-    """HxWxK features -> HxWx3 uint8: their first three principal components as colour."""
+    """HxWxK features -> HxWx3 uint8: their projection on `basis` (default: their own first
+    three principal directions) as colour."""
     h, w, k = features.shape
     x = features.reshape(-1, k).astype(np.float64)
-    if basis is None:
-        centred = x - x.mean(0)
-        _, _, vt = np.linalg.svd(centred[:: max(1, len(x) // 5000)], full_matrices=False)
-        basis = vt[:3].T
-    y = x @ basis
+    y = x @ (feature_basis(features) if basis is None else basis)
     lo, hi = np.percentile(y, 2, axis=0), np.percentile(y, 98, axis=0)
     y = np.clip((y - lo) / np.maximum(hi - lo, 1e-9), 0, 1)
     return (y.reshape(h, w, 3) * 255).astype(np.uint8)
