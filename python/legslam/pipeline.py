@@ -18,7 +18,7 @@ import numpy as np
 
 from .slam import SLAM, SLAMConfig
 
-__all__ = ["run", "evaluate", "feature_rgb"]
+__all__ = ["run", "evaluate", "feature_rgb", "feature_basis"]
 
 
 class Progress:
@@ -44,15 +44,20 @@ class Progress:
               file=sys.stderr, flush=True)
 
 
+def feature_basis(features: np.ndarray) -> np.ndarray:
+    """K x 3: the first three principal directions of HxWxK features (from about 5000 pixels)."""
+    x = features.reshape(-1, features.shape[-1]).astype(np.float64)
+    centred = x - x.mean(0)
+    _, _, vt = np.linalg.svd(centred[:: max(1, len(x) // 5000)], full_matrices=False)
+    return vt[:3].T
+
+
 def feature_rgb(features: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
-    """HxWxK features -> HxWx3 uint8: their first three principal components as colour."""
+    """HxWxK features -> HxWx3 uint8: their projection on `basis` (default: their own first
+    three principal directions) as colour."""
     h, w, k = features.shape
     x = features.reshape(-1, k).astype(np.float64)
-    if basis is None:
-        centred = x - x.mean(0)
-        _, _, vt = np.linalg.svd(centred[:: max(1, len(x) // 5000)], full_matrices=False)
-        basis = vt[:3].T
-    y = x @ basis
+    y = x @ (feature_basis(features) if basis is None else basis)
     lo, hi = np.percentile(y, 2, axis=0), np.percentile(y, 98, axis=0)
     y = np.clip((y - lo) / np.maximum(hi - lo, 1e-9), 0, 1)
     return (y.reshape(h, w, 3) * 255).astype(np.uint8)
@@ -103,7 +108,7 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
     return out
 
 
-def _timing_table(slam: SLAM, wall_s: float) -> dict:
+def _timing_table(slam: SLAM, wall_s: float, viewer_ms: list[float]) -> dict:
     def summary(v):
         return {"mean_ms": float(np.mean(v)) if v else 0.0,
                 "median_ms": float(np.median(v)) if v else 0.0,
@@ -117,14 +122,20 @@ def _timing_table(slam: SLAM, wall_s: float) -> dict:
         table[f"mapping.{key[:-2]}"] = {"total_s": float(sum(s[key] for s in stats))}
     if slam.config.mapping_thread:
         table["mapping.reference_render"] = {"total_s": slam.reference_render_s}
+    if viewer_ms:
+        table["viewer (per frame, and the final map)"] = summary(viewer_ms)
     table["wall_s"] = wall_s
     table["fps"] = len(slam.poses) / wall_s if wall_s > 0 else 0.0
     return table
 
 
 def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
-        evaluate_every: int = 5, encoder=None) -> dict:
-    """Runs SLAM over a sequence (from legslam.datasets.open) and writes the outputs."""
+        evaluate_every: int = 5, encoder=None, viewer=None) -> dict:
+    """Runs SLAM over a sequence (from legslam.datasets.open) and writes the outputs.
+
+    `viewer` (e.g. legslam.viewer.RerunViewer) sees every step, `on_frame(index, frame, step,
+    slam)`, and the finished map, `on_finish(slam)`; its time is part of the wall time and is
+    reported as its own stage."""
     from .eval import write_tum
 
     config = config or SLAMConfig()
@@ -142,21 +153,29 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     slam = SLAM(config, first.K, w, h, encoder=encoder)
     bar = Progress(len(seq), progress)
     t0 = time.perf_counter()
-    stamps = []
+    stamps, viewer_ms = [], []
     for i in range(len(seq)):
         f = first if i == 0 else seq[i]
         stamps.append(f.timestamp)
         r = slam.step(f.rgb, f.depth)
+        if viewer is not None:
+            t1 = time.perf_counter()
+            viewer.on_frame(i, f, r, slam)
+            viewer_ms.append(1e3 * (time.perf_counter() - t1))
         bar.update(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
                       f"gaussians {slam.num_gaussians}")
     slam.finish()
+    if viewer is not None:
+        t1 = time.perf_counter()
+        viewer.on_finish(slam)
+        viewer_ms.append(1e3 * (time.perf_counter() - t1))
     wall = time.perf_counter() - t0
 
     write_tum(out / "trajectory.txt", np.array(stamps), np.stack(slam.poses))
     slam.gaussian_map().save(out / "map.ply")
     if slam.pca is not None:
         slam.pca.save(out / "pca.npz")
-    timings = _timing_table(slam, wall)
+    timings = _timing_table(slam, wall, viewer_ms)
     (out / "timings.json").write_text(json.dumps(timings, indent=2))
     renders = out / "renders"
     renders.mkdir(exist_ok=True)

@@ -28,7 +28,7 @@ def run(args) -> int:
     from .cli import UserError
     from .eval import TrajectoryError, read_tum
     from .map import GaussianMap
-    from .pipeline import feature_rgb
+    from .pipeline import feature_basis, feature_rgb
 
     src = Path(args.run)
     map_path = src / "map.ply" if src.is_dir() else src
@@ -69,9 +69,7 @@ def run(args) -> int:
         cv2.imwrite(str(out / f"{n:06d}_depth.png"), np.where(r.alpha > 0.5, depth_mm, 0).astype(np.uint16))
         if features:
             if basis is None:  # one colour basis for the whole sequence, so colours stay put
-                f = r.features.reshape(-1, m.num_features).astype(np.float64)
-                _, _, vt = np.linalg.svd(f[:: max(1, len(f) // 5000)] - f.mean(0), full_matrices=False)
-                basis = vt[:3].T
+                basis = feature_basis(r.features)
             rgb = feature_rgb(r.features, basis)
             cv2.imwrite(str(out / f"{n:06d}_features.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         print(f"\rview {n + 1}/{len(picked)}", end="", flush=True)

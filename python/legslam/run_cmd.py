@@ -25,6 +25,12 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
                         "the iterations the spare CPU allows (config: mapping_thread)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--viewer", choices=["rerun"], default=None,
+                   help="live view: frames, poses, trajectory, Gaussian centres, renders and "
+                        "features in a spawned rerun viewer (pip install 'legslam[viewer]')")
+    p.add_argument("--viewer-save", default=None, metavar="FILE.rrd",
+                   help="with --viewer rerun: record to this file instead of spawning the "
+                        "viewer (open it later with `rerun FILE.rrd`)")
 
 
 def _positive(name: str, v) -> None:
@@ -32,6 +38,18 @@ def _positive(name: str, v) -> None:
 
     if v is not None and v < 1:
         raise UserError(f"{name} must be at least 1, got {v}")
+
+
+def _viewer(args):
+    from .cli import UserError
+
+    if args.viewer is None:
+        if args.viewer_save:
+            raise UserError("--viewer-save needs --viewer rerun")
+        return None
+    from .viewer import RerunViewer
+
+    return RerunViewer(save=args.viewer_save)
 
 
 def run_sequence(seq, name: str, args) -> int:
@@ -48,8 +66,9 @@ def run_sequence(seq, name: str, args) -> int:
     except (OSError, ValueError) as e:
         raise UserError(str(e)) from e
     out = Path(args.out or Path("legslam-out") / name)
+    viewer = _viewer(args)
     try:
-        result = run(seq, out, config, progress=not args.quiet)
+        result = run(seq, out, config, progress=not args.quiet, viewer=viewer)
     except FileNotFoundError as e:  # e.g. the encoder model is not in the cache
         raise UserError(str(e)) from e
     m, t = result["metrics"], result["timings"]

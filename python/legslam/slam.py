@@ -261,6 +261,11 @@ class SLAM:
         return self._thread or self.mapper
 
     @property
+    def mapping_in_thread(self) -> bool:
+        """Whether a mapping thread owns the map now (until `finish`)."""
+        return self._thread is not None
+
+    @property
     def num_gaussians(self) -> int:
         return self._mapping.num_gaussians
 
@@ -342,7 +347,7 @@ class SLAM:
             self.mapping_stats.append(self.mapper.train(self.config.final_iters))
 
     def _check_idle(self) -> None:
-        if self._thread is not None:
+        if self.mapping_in_thread:
             raise RuntimeError("the mapping thread owns the map while SLAM runs: call finish() first")
 
     def gaussian_map(self) -> GaussianMap:
