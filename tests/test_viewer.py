@@ -65,6 +65,17 @@ def test_cli_run_records_frames_poses_and_the_map(small_synthetic, tmp_path, cap
     assert "/map/features" not in frames  # --no-features
 
 
+def test_with_a_mapping_thread_the_map_is_recorded_at_the_end(small_synthetic, tmp_path):
+    needs_rerun()
+    rrd = tmp_path / "run.rrd"
+    assert main(["run", str(small_synthetic), "--no-features", "--max-frames", "5", "--quiet",
+                 "--realtime", "--out", str(tmp_path / "out"),
+                 "--viewer", "rerun", "--viewer-save", str(rrd)]) == 0
+    frames = logged_frames(rrd)
+    assert frames["/world/camera/image/rgb"] == list(range(5))
+    assert frames["/world/gaussians"] == frames["/map/render"] == [4]
+
+
 class ColourEncoder:
     """A stand-in image encoder: 9-d features of an 8x6 patch grid, from colour alone."""
 
