@@ -77,6 +77,7 @@ def main() -> int:
     print(f"| Gaussians | {m['gaussians']} |")
     print(f"| peak memory (RSS) | {peak_mb:.0f} MB |")
     print(f"| frames per second, whole pipeline | {t['fps']:.2f} |")
+    print(f"| frames per second while frames come in (before the final iterations) | {t['fps_live']:.2f} |")
     print("\n| stage | mean ms | median ms | total s |\n|---|---|---|---|")
     for k, v in t.items():
         if isinstance(v, dict) and "mean_ms" in v:

@@ -58,6 +58,7 @@ def test_outputs_are_written(mapped):
     timings = json.loads((out / "timings.json").read_text())
     for stage in ("preprocessing", "tracking", "mapping"):
         assert timings[stage]["count"] == 24
+    assert timings["fps_live"] >= timings["fps"] > 0  # the final iterations come after the frames
     assert json.loads((out / "metrics.json").read_text())["gaussians"] > 1000
     assert (out / "map.ply").stat().st_size > 1000
     assert any((out / "renders").glob("*_input_render.png"))

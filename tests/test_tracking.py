@@ -159,6 +159,17 @@ def test_reference_is_reusable_and_results_deterministic(tracker):
 
 
 @needs_data
+def test_a_tracker_on_its_own_threads_gives_the_same_result(tracker):
+    rgb0, d0, K, p0 = load(0)
+    rgb1, d1, _, _ = load(4)
+    shared = tracker.track(rgb1, d1, K, rgb0, d0, p0, init_pose=p0)
+    own = Tracker(threads=1).track(rgb1, d1, K, rgb0, d0, p0, init_pose=p0)
+    np.testing.assert_array_equal(shared.pose, own.pose)
+    with pytest.raises(ValueError, match="threads"):
+        Tracker(threads=0)
+
+
+@needs_data
 def test_float_colour_input_matches_uint8(tracker):
     rgb0, d0, K, p0 = load(0)
     rgb1, d1, _, _ = load(3)

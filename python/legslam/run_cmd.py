@@ -73,7 +73,7 @@ def run_sequence(seq, name: str, args) -> int:
         raise UserError(str(e)) from e
     m, t = result["metrics"], result["timings"]
     print(f"frames {m['frames']}  keyframes {m['keyframes']}  lost {m['lost_frames']}  "
-          f"gaussians {m['gaussians']}  {t['fps']:.2f} fps")
+          f"gaussians {m['gaussians']}  {t['fps']:.2f} fps ({t['fps_live']:.2f} while frames came in)")
     if "ate_rmse_m" in m:
         print(f"ATE RMSE {100 * m['ate_rmse_m']:.2f} cm")
     every = next(k for k in m if k.startswith("every_"))

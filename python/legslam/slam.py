@@ -61,6 +61,9 @@ class SLAMConfig:
     #: pose.
     mapping_thread: bool = False
     mapping_batch: int = 2
+    #: With a mapping thread: the mapper's threads (0: one per core); the tracker then runs
+    #: on one thread of its own.
+    mapping_threads: int = 0
     #: A rendered pixel is trusted as a tracking reference where its alpha exceeds this; below
     #: `min_reference_coverage` of trusted pixels, the last keyframe is the reference instead.
     reference_alpha: float = 0.8
@@ -167,9 +170,9 @@ class SLAM:
         mapper_opts.setdefault("finest_level", level)
         mapper_opts.setdefault("grow_level", level)
         mapper_opts.setdefault("levels", level + 3)
-        threads = (os.cpu_count() or 2) if config.mapping_thread else None
+        threads = (config.mapping_threads or os.cpu_count() or 2) if config.mapping_thread else None
         self.mapper = _core.MapperCore(mapper_opts, threads=threads)
-        self.tracker = Tracker(**self._tracker_options())
+        self.tracker = Tracker(threads=1 if config.mapping_thread else None, **self._tracker_options())
         self.poses: list[np.ndarray] = []
         self.states: list[str] = []
         self.keyframe_frames: list[int] = []

@@ -124,10 +124,11 @@ class Tracker:
     `max_depth_diff`, `geometric_huber`, `photometric_huber`, `photometric_weight`,
     `estimate_gain`, `min_gradient`, `convergence_eps`, `inlier_threshold`, `min_inlier_ratio`, `min_inliers`,
     `max_condition`, `max_translation`, `max_rotation_deg`. Unknown or invalid options raise
-    ValueError."""
+    ValueError. `threads`: run on a thread pool of this many threads of its own (default: the
+    engine's shared pool)."""
 
-    def __init__(self, **config: Any):
-        self._core = _core.TrackerCore(config)
+    def __init__(self, threads: int | None = None, **config: Any):
+        self._core = _core.TrackerCore(config, threads=threads)
 
     @property
     def config(self) -> dict[str, Any]:

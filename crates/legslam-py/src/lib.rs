@@ -4,6 +4,7 @@
 use pyo3::prelude::*;
 
 mod map;
+mod pool;
 mod raster;
 mod track;
 

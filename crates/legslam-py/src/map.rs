@@ -9,7 +9,7 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-use crate::raster::engine_call;
+use crate::pool;
 
 fn config_from_dict(d: Option<&Bound<'_, PyDict>>) -> PyResult<MapperConfig> {
     let mut c = MapperConfig::default();
@@ -55,21 +55,8 @@ fn pose(p: &PyReadonlyArray2<'_, f64>) -> PyResult<Pose> {
 #[pyclass(module = "legslam._core", name = "MapperCore")]
 pub struct PyMapper {
     inner: Mapper,
-    /// Worker threads of its own when asked for (mapping in a thread beside the tracker, so
-    /// that neither queues behind the other's tasks), else rayon's global pool.
+    /// Worker threads of its own when asked for (see `pool`), else rayon's global pool.
     pool: Option<rayon::ThreadPool>,
-}
-
-/// `engine_call` inside the mapper's own pool, if it has one.
-fn in_pool<T: Send>(
-    pool: &Option<rayon::ThreadPool>,
-    py: Python<'_>,
-    f: impl FnOnce() -> Result<T, String> + Send,
-) -> PyResult<T> {
-    engine_call(py, || match pool {
-        Some(p) => p.install(f),
-        None => f(),
-    })
 }
 
 #[pymethods]
@@ -79,17 +66,7 @@ impl PyMapper {
     #[pyo3(signature = (config=None, threads=None))]
     fn new(config: Option<&Bound<'_, PyDict>>, threads: Option<usize>) -> PyResult<Self> {
         let inner = Mapper::new(config_from_dict(config)?).map_err(PyValueError::new_err)?;
-        let pool = match threads {
-            Some(0) => return Err(PyValueError::new_err("threads must be at least 1")),
-            Some(n) => Some(
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(n)
-                    .thread_name(|i| format!("legslam-map-{i}"))
-                    .build()
-                    .map_err(|e| PyValueError::new_err(format!("mapper thread pool: {e}")))?,
-            ),
-            None => None,
-        };
+        let pool = pool::build(threads, "legslam-map")?;
         Ok(PyMapper { inner, pool })
     }
 
@@ -137,7 +114,7 @@ impl PyMapper {
         let depth = depth.as_array().iter().copied().collect();
         let p = pose(&pose_c2w)?;
         let inner = &mut self.inner;
-        in_pool(&self.pool, py, || {
+        pool::call(&self.pool, py, || {
             inner.add_keyframe(rgb, depth, Intrinsics::from_array(k, w, h), p)
         })
     }
@@ -152,7 +129,7 @@ impl PyMapper {
         let s = grid.shape().to_vec();
         let data = grid.as_array().iter().copied().collect();
         let inner = &mut self.inner;
-        in_pool(&self.pool, py, || {
+        pool::call(&self.pool, py, || {
             let g = FeatureGrid::new(data, s[1], s[0], s[2])?;
             inner.set_features(id, g)
         })
@@ -161,7 +138,7 @@ impl PyMapper {
     /// Runs mapping iterations; returns a dict of what happened.
     fn train<'py>(&mut self, py: Python<'py>, iterations: usize) -> PyResult<Bound<'py, PyDict>> {
         let inner = &mut self.inner;
-        let r = in_pool(&self.pool, py, || inner.train(iterations))?;
+        let r = pool::call(&self.pool, py, || inner.train(iterations))?;
         let d = PyDict::new(py);
         d.set_item("iterations", r.iterations)?;
         d.set_item("loss", r.last.total)?;
@@ -193,7 +170,7 @@ impl PyMapper {
     ) -> PyResult<Bound<'py, PyDict>> {
         let p = pose(&pose_c2w)?;
         let inner = &self.inner;
-        let r = in_pool(&self.pool, py, || {
+        let r = pool::call(&self.pool, py, || {
             inner.render(&p, Intrinsics::from_array(k, width, height), features)
         })?;
         let d = PyDict::new(py);

@@ -10,6 +10,8 @@ use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
+
+use crate::pool;
 use pyo3::types::{PyDict, PyList};
 
 fn err(msg: String) -> PyErr {
@@ -206,14 +208,19 @@ impl PyTrackReference {
 #[pyclass(module = "legslam._core", name = "TrackerCore", frozen)]
 struct PyTracker {
     config: TrackerConfig,
+    /// Worker threads of its own when asked for (see `pool`), else rayon's global pool.
+    pool: Option<rayon::ThreadPool>,
 }
 
 #[pymethods]
 impl PyTracker {
+    /// `threads`: run on a pool of this many threads of its own instead of the global one.
     #[new]
-    fn new(config: &Bound<'_, PyDict>) -> PyResult<Self> {
+    #[pyo3(signature = (config, threads=None))]
+    fn new(config: &Bound<'_, PyDict>, threads: Option<usize>) -> PyResult<Self> {
         Ok(PyTracker {
             config: config_from_dict(config)?,
+            pool: pool::build(threads, "legslam-track")?,
         })
     }
 
@@ -236,9 +243,7 @@ impl PyTracker {
         let (color, d) = view.slices()?;
         let kk = view.k;
         let cfg = &self.config;
-        let inner = py
-            .detach(|| Reference::new(color, d, &kk, &pose, cfg))
-            .map_err(err)?;
+        let inner = pool::call(&self.pool, py, || Reference::new(color, d, &kk, &pose, cfg))?;
         Ok(PyTrackReference {
             inner,
             config: self.config.clone(),
@@ -267,12 +272,10 @@ impl PyTracker {
         let kk = view.k;
         let cfg = &self.config;
         let rf = &reference.inner;
-        let res = py
-            .detach(|| {
-                let frame = Frame::new(color, d, &kk, cfg)?;
-                track::track(rf, &frame, &init, cfg)
-            })
-            .map_err(err)?;
+        let res = pool::call(&self.pool, py, || {
+            let frame = Frame::new(color, d, &kk, cfg)?;
+            track::track(rf, &frame, &init, cfg)
+        })?;
         result_dict(py, &res)
     }
 }
