@@ -51,7 +51,7 @@ class SLAMConfig:
     map_iters_frame: int = 2
     #: The map trains at the coarsest pyramid level at least this wide (or full resolution).
     map_width: int = 320
-    #: Mapping iterations once the sequence has ended.
+    #: Mapping iterations once the sequence has ended, on keyframes drawn from all of them.
     final_iters: int = 100
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
     #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
@@ -347,7 +347,9 @@ class SLAM:
         if self._features is not None:
             self._features.drain()
         if self.config.final_iters > 0:
-            self.mapping_stats.append(self.mapper.train(self.config.final_iters))
+            # Over every keyframe: the map is used (and evaluated) over the whole sequence.
+            self.mapping_stats.append(self.mapper.train(self.config.final_iters,
+                                                        window=self.mapper.num_keyframes))
 
     def _check_idle(self) -> None:
         if self.mapping_in_thread:

@@ -161,3 +161,26 @@ fn features_trained_at_a_coarser_level_learn_the_target() {
         }
     }
 }
+
+/// `train` draws from the configured window of recent keyframes, `train_window` from the one
+/// it is given, each a shuffled pass that visits every keyframe in it once.
+#[test]
+fn training_windows_choose_which_keyframes_are_trained() {
+    let cfg = MapperConfig {
+        finest_level: 0,
+        grow_level: 1,
+        window: 1,
+        ..Default::default()
+    };
+    let mut m = Mapper::new(cfg).unwrap();
+    for _ in 0..3 {
+        let (rgb, depth, k) = wall(32, 24);
+        m.add_keyframe(rgb, depth, k, EYE).unwrap();
+    }
+    let uses = |m: &Mapper| m.keyframes.iter().map(|k| k.uses).collect::<Vec<_>>();
+    m.train(2).unwrap();
+    assert_eq!(uses(&m), [0, 0, 2]);
+    m.train_window(6, usize::MAX).unwrap();
+    assert_eq!(uses(&m), [2, 2, 4]);
+    assert_eq!(m.train_window(3, 0).unwrap().iterations, 0);
+}

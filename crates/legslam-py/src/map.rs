@@ -135,10 +135,18 @@ impl PyMapper {
         })
     }
 
-    /// Runs mapping iterations; returns a dict of what happened.
-    fn train<'py>(&mut self, py: Python<'py>, iterations: usize) -> PyResult<Bound<'py, PyDict>> {
+    /// Runs mapping iterations on keyframes drawn from the most recent `window` (default: the
+    /// configured window); returns a dict of what happened.
+    #[pyo3(signature = (iterations, window=None))]
+    fn train<'py>(
+        &mut self,
+        py: Python<'py>,
+        iterations: usize,
+        window: Option<usize>,
+    ) -> PyResult<Bound<'py, PyDict>> {
         let inner = &mut self.inner;
-        let r = pool::call(&self.pool, py, || inner.train(iterations))?;
+        let window = window.unwrap_or(inner.config.window);
+        let r = pool::call(&self.pool, py, || inner.train_window(iterations, window))?;
         let d = PyDict::new(py);
         d.set_item("iterations", r.iterations)?;
         d.set_item("loss", r.last.total)?;

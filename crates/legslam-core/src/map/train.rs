@@ -90,6 +90,8 @@ pub struct Mapper {
     adam: Adam,
     loss: Loss,
     queue: Vec<usize>,
+    /// The window the queue was drawn from.
+    queue_window: usize,
     rng: Rng,
     stats: GradStats,
     iteration: usize,
@@ -129,6 +131,7 @@ impl Mapper {
             adam,
             loss: Loss::new(config.loss),
             queue: Vec::new(),
+            queue_window: 0,
             rng: Rng::new(config.seed),
             stats: GradStats::default(),
             iteration: 0,
@@ -270,31 +273,42 @@ impl Mapper {
         self.adam.config.scene_extent
     }
 
-    /// The next keyframe to train on: a shuffled pass over the window.
-    fn next_keyframe(&mut self) -> usize {
-        if self.queue.is_empty() {
+    /// The next keyframe to train on: a shuffled pass over the most recent `window`.
+    fn next_keyframe(&mut self, window: usize) -> usize {
+        if self.queue.is_empty() || window != self.queue_window {
             let n = self.keyframes.len();
-            self.queue = (n.saturating_sub(self.config.window)..n).collect();
+            self.queue = (n.saturating_sub(window)..n).collect();
             self.rng.shuffle(&mut self.queue);
+            self.queue_window = window;
         }
         self.queue.pop().unwrap()
     }
 
-    /// Runs `iterations` mapping iterations.
+    /// Runs `iterations` mapping iterations over the configured window of keyframes.
     pub fn train(&mut self, iterations: usize) -> Result<TrainReport, String> {
+        self.train_window(iterations, self.config.window)
+    }
+
+    /// Runs `iterations` mapping iterations on keyframes drawn from the most recent `window`
+    /// (all of them for `usize::MAX`, e.g. to refine the whole map at the end).
+    pub fn train_window(
+        &mut self,
+        iterations: usize,
+        window: usize,
+    ) -> Result<TrainReport, String> {
         let mut report = TrainReport::default();
-        if self.keyframes.is_empty() || self.map.is_empty() {
+        if self.keyframes.is_empty() || self.map.is_empty() || window == 0 {
             return Ok(report);
         }
         for _ in 0..iterations {
-            self.iterate(&mut report)?;
+            self.iterate(&mut report, window)?;
             report.iterations += 1;
         }
         Ok(report)
     }
 
-    fn iterate(&mut self, report: &mut TrainReport) -> Result<(), String> {
-        let ki = self.next_keyframe();
+    fn iterate(&mut self, report: &mut TrainReport, window: usize) -> Result<(), String> {
+        let ki = self.next_keyframe(window);
         let c = &self.config;
         let kf = &mut self.keyframes[ki];
         let coarsest = kf.levels.len() - 1;
