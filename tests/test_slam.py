@@ -125,6 +125,19 @@ def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):
     assert main(["eval", str(tmp_path)]) == 2
 
 
+def test_eval_sees_the_frames_a_strided_run_saw(scene, tmp_path, capsys):
+    quick = tmp_path / "quick.toml"
+    quick.write_text("features = false\nfinal_iters = 3\nmap_iters_keyframe = 3\n")
+    out = tmp_path / "run"
+    assert main(["run", str(scene), "--stride", "3", "--max-frames", "6", "--quiet",
+                 "--config", str(quick), "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert main(["eval", str(out), "--every", "1"]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    assert report["frames"] == 6
+    assert abs(report["ate_rmse_cm"] - 100 * metrics["ate_rmse_m"]) < 1e-6
+
+
 def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     quick = tmp_path / "quick.toml"
     quick.write_text("final_iters = 5\nmap_iters_keyframe = 3\n")

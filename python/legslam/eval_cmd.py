@@ -39,10 +39,19 @@ def _open_at_run_size(path, fmt: str, width: int, height: int):
             seq = open_dataset(path, format=fmt, downscale=f)
     except (DatasetError, FileNotFoundError) as e:
         raise UserError(str(e)) from e
-    if (seq.width, seq.height) != (width, height):
-        raise UserError(f"the run's images are {width}x{height} but {path}'s are {seq.width}x{seq.height}, "
-                        "not an integer downscale of them (a different sequence? give --sequence)")
     return seq
+
+
+def _open_selection(path, fmt: str, selection: dict):
+    """The frames the run saw (its stride, range and downscale, as camera.json records)."""
+    from .cli import UserError
+    from .datasets import DatasetError, open as open_dataset
+
+    try:
+        return open_dataset(path, format=fmt, frames=tuple(selection["frames"]),
+                            stride=selection["stride"], downscale=selection["downscale"])
+    except (DatasetError, FileNotFoundError, KeyError, TypeError) as e:
+        raise UserError(f"cannot open the run's frames of {path} ({selection}): {e}") from e
 
 
 def run(args) -> int:
@@ -62,7 +71,13 @@ def run(args) -> int:
     if not seq_path:
         raise UserError("the run does not record its sequence: give --sequence PATH")
     K, w, h = np.array(cam["K"]), cam["width"], cam["height"]
-    seq = _open_at_run_size(seq_path, args.format, w, h)
+    if cam.get("selection") and not args.sequence:
+        seq = _open_selection(seq_path, args.format, cam["selection"])
+    else:
+        seq = _open_at_run_size(seq_path, args.format, w, h)
+    if (seq.width, seq.height) != (w, h):
+        raise UserError(f"the run's images are {w}x{h} but {seq_path}'s are {seq.width}x{seq.height}, "
+                        "not an integer downscale of them (a different sequence? give --sequence)")
     _, poses = read_tum(run_dir / "trajectory.txt")
     if len(poses) > len(seq):
         raise UserError(f"the trajectory has {len(poses)} poses but {seq_path} only {len(seq)} frames "

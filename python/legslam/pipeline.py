@@ -150,7 +150,8 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
         h, w = first.depth.shape
         (out / "camera.json").write_text(json.dumps(
             {"K": first.K.tolist(), "width": w, "height": h,
-             "sequence": str(getattr(seq, "path", ""))}, indent=2))
+             "sequence": str(getattr(seq, "path", "")),
+             "selection": getattr(seq, "selection", None)}, indent=2))
     if first is None:
         raise ValueError(f"{getattr(seq, 'path', 'the sequence')} has no frames")
     slam = SLAM(config, first.K, w, h, encoder=encoder)

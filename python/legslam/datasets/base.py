@@ -164,6 +164,12 @@ class Sequence:
             raise DatasetError(f"{self.path}: no frames selected (the sequence has {n})")
 
     @property
+    def selection(self) -> dict:
+        """The options that select these frames from the folder, as `open` takes them."""
+        r = self._indices
+        return {"frames": [r.start, r.stop], "stride": r.step, "downscale": self._downscale}
+
+    @property
     def intrinsics(self) -> tuple:
         """(fx, fy, cx, cy) of the frames this sequence returns."""
         return (self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2])
