@@ -235,3 +235,15 @@ def test_a_failure_in_the_mapping_thread_reaches_the_tracker():
         t.reference()
     with pytest.raises(RuntimeError, match="engine says no"):
         t.stop()
+
+
+def test_a_mapping_thread_grows_from_every_other_pixel_unless_told_otherwise():
+    def grow_stride(**cfg):
+        slam = SLAM(SLAMConfig(features=False, final_iters=0, **cfg), np.eye(3), 64, 48)
+        stride = slam.mapper.config()["grow_stride"]
+        slam.finish()
+        return stride
+
+    assert grow_stride() == 1
+    assert grow_stride(mapping_thread=True) == 2
+    assert grow_stride(mapping_thread=True, mapper={"grow_stride": 1}) == 1
