@@ -247,3 +247,6 @@ def test_a_mapping_thread_grows_from_every_other_pixel_unless_told_otherwise():
     assert grow_stride() == 1
     assert grow_stride(mapping_thread=True) == 2
     assert grow_stride(mapping_thread=True, mapper={"grow_stride": 1}) == 1
+    for bad in ({"mapping_batch": 0}, {"mapping_threads": -1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SLAM(SLAMConfig(features=False, mapping_thread=True, **bad), np.eye(3), 64, 48)

@@ -171,6 +171,9 @@ class SLAM:
         mapper_opts.setdefault("finest_level", level)
         mapper_opts.setdefault("grow_level", level)
         mapper_opts.setdefault("levels", level + 3)
+        for name, least in (("mapping_batch", 1), ("mapping_threads", 0)):
+            if getattr(config, name) < least:
+                raise ValueError(f"{name} must be at least {least}, got {getattr(config, name)}")
         if config.mapping_thread:
             # A quarter of the Gaussians per keyframe: what a mapper sharing the CPU with the
             # tracker can train (on 7-Scenes, 300 frames: PSNR 20.1 dB against 16.4 dB).
@@ -192,8 +195,6 @@ class SLAM:
         self._features = _FeatureFeed(self, encoder) if config.features else None
         self._thread: Optional[MappingThread] = None
         if config.mapping_thread:
-            if config.mapping_batch < 1:
-                raise ValueError(f"mapping_batch must be at least 1, got {config.mapping_batch}")
             self._thread = MappingThread(self.mapper, _k4(self.K_track), self.track_size,
                                          config.mapping_batch)
 
