@@ -186,6 +186,7 @@ class SLAM:
         self.keyframe_frames: list[int] = []
         self._last_kf: Optional[tuple] = None  # (pose, rgb_t, depth_t, frame index)
         self._last_tracked: Optional[tuple] = None  # (pose, rgb_t, depth_t)
+        self._prepared: Optional[tuple] = None  # (render, coverage, prepared reference or None)
         self.timings: dict[str, list[float]] = {
             "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
         self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
@@ -304,27 +305,40 @@ class SLAM:
         little of the view or the alignment fails, against the last tracked frame, then the
         last keyframe. Lost only when all of them fail."""
         predicted = self._predict()
-        ref_pose, r = self._reference_render(predicted)
-        references = []
-        coverage = 1.0  # unknown until the mapping thread's first render: no keyframe for it
-        if r is not None:
-            alpha = r["alpha"]
-            trusted = alpha > self.config.reference_alpha
-            coverage = float(trusted.mean())
-        if r is not None and coverage >= self.config.min_reference_coverage:
-            ref_depth = np.where(trusted, r["depth"] / np.maximum(alpha, 1e-6), 0).astype(np.float32)
-            ref_rgb = np.clip(r["color"] / np.maximum(alpha, 1e-6)[..., None], 0, 1)
-            references.append((ref_pose, ref_rgb, ref_depth))
-        references.append(self._last_tracked)
-        references.append(self._last_kf[:3])
+        coverage, map_reference = self._map_reference(*self._reference_render(predicted))
+
+        def references():  # prepared only when the one before fails
+            if map_reference is not None:
+                yield map_reference
+            for pose, rgb, depth in (self._last_tracked, self._last_kf[:3]):
+                yield self.tracker.prepare_reference(rgb, depth, self.K_track, pose)
+
         reason = None
-        for ref_pose, ref_rgb, ref_depth in references:
-            res = self.tracker.track(rgb_t, depth_t, self.K_track, ref_rgb, ref_depth, ref_pose,
-                                     init_pose=predicted)
+        for ref in references():
+            res = self.tracker.track(rgb_t, depth_t, self.K_track, init_pose=predicted,
+                                     reference=ref)
             if not res.lost:
                 return res.pose, "ok", coverage, None
             reason = reason or res.reason
         return predicted, "lost", coverage, reason
+
+    def _map_reference(self, pose, r) -> tuple:
+        """(coverage, the render prepared as a tracking reference or None when it covers too
+        little). A mapping thread's render serves many frames: it is prepared once."""
+        if r is None:
+            return 1.0, None  # unknown until the mapping thread's first render: no keyframe for it
+        if self._prepared is not None and self._prepared[0] is r:
+            return self._prepared[1:]
+        alpha = r["alpha"]
+        trusted = alpha > self.config.reference_alpha
+        coverage = float(trusted.mean())
+        reference = None
+        if coverage >= self.config.min_reference_coverage:
+            depth = np.where(trusted, r["depth"] / np.maximum(alpha, 1e-6), 0).astype(np.float32)
+            rgb = np.clip(r["color"] / np.maximum(alpha, 1e-6)[..., None], 0, 1)
+            reference = self.tracker.prepare_reference(rgb, depth, self.K_track, pose)
+        self._prepared = (r, coverage, reference)
+        return coverage, reference
 
     def _is_keyframe(self, i: int, pose: np.ndarray, coverage: float) -> bool:
         c = self.config
