@@ -81,6 +81,10 @@ fn options_by_name_round_trip_and_reject_unknown_or_fractional() {
         .contains("unknown mapper option"));
     assert!(c.set("window", 2.5).is_err());
     assert!(c.set("lr_sh", f64::NAN).is_err());
+    c.set("adam_sparse", 1.0).unwrap();
+    assert!(c.adam.sparse);
+    assert!(c.entries().contains(&("adam_sparse", 1.0)));
+    assert!(c.set("adam_sparse", 0.5).is_err());
 }
 
 #[test]

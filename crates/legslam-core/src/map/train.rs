@@ -4,6 +4,8 @@
 
 use std::time::Instant;
 
+use rayon::prelude::*;
+
 use super::densify::{densify, DensifyConfig, GradStats};
 use super::grow::{assign_features, grow, GrowConfig, RenderedView};
 use super::prune::{keep_mask, PruneConfig};
@@ -13,7 +15,9 @@ use crate::loss::{
     DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
 };
 use crate::optim::{normalize_quats, Adam, AdamConfig, Groups};
-use crate::raster::{backward, render, Camera, Gradients, ImageGrads, RenderOptions, Rendered};
+use crate::raster::{
+    backward_into, render, BackwardScratch, Camera, Gradients, ImageGrads, RenderOptions, Rendered,
+};
 use crate::rng::Rng;
 use crate::Real;
 
@@ -98,13 +102,17 @@ pub struct Mapper {
     scratch: Scratch,
 }
 
-/// Per-iteration image buffers, kept between iterations.
+/// Per-iteration buffers, kept between iterations.
 #[derive(Default)]
 struct Scratch {
     d_color: Vec<Real>,
     d_depth: Vec<Real>,
     d_feat: Vec<Real>,
     target: Vec<Real>,
+    backward: BackwardScratch,
+    /// Gradients of the colour pass, and of the features-only pass.
+    grads: Gradients,
+    feature_grads: Gradients,
 }
 
 fn camera(pose: &Pose, intr: Intrinsics) -> Result<Camera, String> {
@@ -370,7 +378,7 @@ impl Mapper {
         report.loss_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
-        let mut grads = backward(
+        backward_into(
             &self.map.view(),
             &cam,
             &r,
@@ -380,20 +388,23 @@ impl Mapper {
                 alpha: None,
                 features: features_here.then_some(&sc.d_feat[..]),
             },
+            &mut sc.backward,
+            &mut sc.grads,
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
         if with_features && !features_here {
-            let (feature_loss, g) = self.feature_pass(ki, lf, report)?;
+            let feature_loss = self.feature_pass(ki, lf, report)?;
             terms.feature = feature_loss;
             terms.total += f64::from(self.config.loss.feature) * feature_loss;
-            add_grads(&mut grads, &g);
+            let sc = &mut self.scratch;
+            add_grads(&mut sc.grads, &sc.feature_grads);
         }
         report.last = terms;
 
         let t = Instant::now();
+        let grads = &self.scratch.grads;
         self.stats.add(&grads.means2d, &r.radii);
-        self.adam
-            .step(self.map.params_mut(), Groups::from(&grads))?;
+        self.adam.step(self.map.params_mut(), Groups::from(grads))?;
         normalize_quats(&mut self.map.quats)?;
         self.iteration += 1;
         let interval = self.config.densify.interval;
@@ -404,14 +415,14 @@ impl Mapper {
         Ok(())
     }
 
-    /// Renders only the features of keyframe `ki` at pyramid level `lf` and returns the
-    /// feature term and its gradients.
+    /// Renders only the features of keyframe `ki` at pyramid level `lf`; returns the feature
+    /// term and leaves its gradients in `scratch.feature_grads`.
     fn feature_pass(
         &mut self,
         ki: usize,
         lf: usize,
         report: &mut TrainReport,
-    ) -> Result<(f64, Gradients), String> {
+    ) -> Result<f64, String> {
         let kf = &self.keyframes[ki];
         let grid = kf.features.as_ref().ok_or("the keyframe has no features")?;
         let intr = kf.levels[lf].intrinsics;
@@ -441,7 +452,7 @@ impl Mapper {
         report.loss_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
-        let grads = backward(
+        backward_into(
             &self.map.view(),
             &cam,
             &r,
@@ -449,9 +460,11 @@ impl Mapper {
                 features: Some(&sc.d_feat),
                 ..Default::default()
             },
+            &mut sc.backward,
+            &mut sc.feature_grads,
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
-        Ok((loss, grads))
+        Ok(loss)
     }
 
     /// Densifies, then prunes; the optimiser's rows follow the map's.
@@ -488,7 +501,29 @@ fn add_grads(into: &mut Gradients, from: &Gradients) {
         (&mut into.sh, &from.sh),
         (&mut into.features, &from.features),
     ] {
-        a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        a.par_chunks_mut(1 << 14)
+            .zip(b.par_chunks(1 << 14))
+            .for_each(|(a, b)| a.iter_mut().zip(b).for_each(|(x, y)| *x += y));
+    }
+}
+
+/// An option's value as the f64 that configuration files and bindings exchange.
+trait OptionValue {
+    fn to_f64(self) -> f64;
+}
+
+macro_rules! numeric_option {
+    ($($t:ty),*) => {$(impl OptionValue for $t {
+        fn to_f64(self) -> f64 {
+            self as f64
+        }
+    })*};
+}
+numeric_option!(usize, u64, f32, f64);
+
+impl OptionValue for bool {
+    fn to_f64(self) -> f64 {
+        f64::from(u8::from(self))
     }
 }
 
@@ -499,7 +534,7 @@ macro_rules! options {
         impl MapperConfig {
             /// (name, value) of every option.
             pub fn entries(&self) -> Vec<(&'static str, f64)> {
-                vec![$(($name, self.$($field).+ as f64)),*]
+                vec![$(($name, OptionValue::to_f64(self.$($field).+))),*]
             }
 
             /// Sets one option by name; integers must be whole and non-negative.
@@ -528,6 +563,13 @@ macro_rules! options {
     (@conv u64, $name:ident, $v:ident) => {
         options!(@conv usize, $name, $v).map(|v| v as u64)
     };
+    (@conv bool, $name:ident, $v:ident) => {
+        match $v {
+            0.0 => Ok(false),
+            1.0 => Ok(true),
+            _ => Err(format!("mapper option {} must be 0 or 1 (or a boolean), got {}", $name, $v)),
+        }
+    };
     (@conv Real, $name:ident, $v:ident) => {
         Ok::<Real, String>($v as Real)
     };
@@ -553,6 +595,7 @@ options! {
     "lr_opacity" => adam.lr.opacity_logits: Real,
     "lr_sh" => adam.lr.sh: Real,
     "lr_features" => adam.lr.features: Real,
+    "adam_sparse" => adam.sparse: bool,
     "grow_stride" => grow.stride: usize,
     "grow_alpha_threshold" => grow.alpha_threshold: Real,
     "grow_depth_tolerance" => grow.depth_tolerance: Real,

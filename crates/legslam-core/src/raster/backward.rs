@@ -35,6 +35,17 @@ fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> 
     }
 }
 
+/// Buffers of the backward pass, kept between passes: a training loop that allocated them
+/// afresh would page-fault (and, with other threads running, shoot down TLBs) over hundreds of
+/// megabytes per iteration.
+#[derive(Default)]
+pub struct BackwardScratch {
+    pair_grads: Vec<Real>,
+    g_start: Vec<usize>,
+    g_pairs: Vec<u32>,
+    cursor: Vec<usize>,
+}
+
 /// Gradients of a scalar loss with respect to every Gaussian parameter and the camera pose,
 /// given d(loss)/d(each rendered image). `g`, `cam` and the options must be the ones `r` was
 /// rendered with.
@@ -44,6 +55,20 @@ pub fn backward(
     r: &Rendered,
     grads: &ImageGrads,
 ) -> Result<Gradients, String> {
+    let mut out = Gradients::default();
+    backward_into(g, cam, r, grads, &mut BackwardScratch::default(), &mut out)?;
+    Ok(out)
+}
+
+/// [`backward`] into `out` (overwritten), with buffers reused from `scratch`.
+pub fn backward_into(
+    g: &Gaussians,
+    cam: &Camera,
+    r: &Rendered,
+    grads: &ImageGrads,
+    scratch: &mut BackwardScratch,
+    out: &mut Gradients,
+) -> Result<(), String> {
     let opts = r.state.options;
     let (w, h, k) = (r.width, r.height, r.num_features);
     if cam.intrinsics.width != w || cam.intrinsics.height != h || r.state.splats.len() != g.len() {
@@ -60,7 +85,8 @@ pub fn backward(
     let stride = SLOTS + k;
 
     // Per (tile, Gaussian) pair gradients; each tile owns a contiguous range.
-    let mut pair_grads: Vec<Real> = vec![0.0; bins.pair_gauss.len() * stride];
+    let pair_grads = &mut scratch.pair_grads;
+    zeroed(pair_grads, bins.pair_gauss.len() * stride);
     let mut tile_slices = Vec::with_capacity(st.grid.len());
     let mut rest = pair_grads.as_mut_slice();
     for t in 0..st.grid.len() {
@@ -160,28 +186,35 @@ pub fn backward(
 
     // Each Gaussian's pairs, in tile order, so that its sum is deterministic.
     let n = g.len();
-    let mut g_start = vec![0usize; n + 1];
+    let BackwardScratch {
+        pair_grads,
+        g_start,
+        g_pairs,
+        cursor,
+    } = scratch;
+    g_start.clear();
+    g_start.push(0);
     for i in 0..n {
-        g_start[i + 1] = g_start[i] + rect_area(&st.rects[i]);
+        g_start.push(g_start[i] + rect_area(&st.rects[i]));
     }
-    let mut g_pairs = vec![0u32; g_start[n]];
-    let mut cursor = g_start[..n].to_vec();
+    g_pairs.resize(g_start[n], 0);
+    cursor.clear();
+    cursor.extend_from_slice(&g_start[..n]);
     for (pair, &i) in bins.pair_gauss.iter().enumerate() {
         g_pairs[cursor[i as usize]] = pair as u32;
         cursor[i as usize] += 1;
     }
+    let (pair_grads, g_start, g_pairs) = (&pair_grads[..], &g_start[..], &g_pairs[..]);
 
     let nc = g.sh_coeffs * 3;
-    let mut out = Gradients {
-        means: vec![0.0; n * 3],
-        log_scales: vec![0.0; n * 3],
-        quats: vec![0.0; n * 4],
-        opacity_logits: vec![0.0; n],
-        sh: vec![0.0; n * nc],
-        features: vec![0.0; n * g.num_features],
-        means2d: vec![0.0; n * 2],
-        pose: [0.0; 6],
-    };
+    zeroed(&mut out.means, n * 3);
+    zeroed(&mut out.log_scales, n * 3);
+    zeroed(&mut out.quats, n * 4);
+    zeroed(&mut out.opacity_logits, n);
+    zeroed(&mut out.sh, n * nc);
+    zeroed(&mut out.features, n * g.num_features);
+    zeroed(&mut out.means2d, n * 2);
+    out.pose = [0.0; 6];
     const CHUNK: usize = 1024;
     let nch = n.div_ceil(CHUNK);
     let kf = g.num_features;
@@ -254,7 +287,14 @@ pub fn backward(
             *p += v;
         }
     }
-    Ok(out)
+    Ok(())
+}
+
+/// Makes `v` hold `len` zeros, reusing its allocation.
+fn zeroed(v: &mut Vec<Real>, len: usize) {
+    v.truncate(len);
+    v.par_chunks_mut(1 << 16).for_each(|c| c.fill(0.0));
+    v.resize(len, 0.0);
 }
 
 #[inline]

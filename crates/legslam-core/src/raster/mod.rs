@@ -17,7 +17,7 @@ mod project;
 pub mod sh;
 mod tiles;
 
-pub use backward::backward;
+pub use backward::{backward, backward_into, BackwardScratch};
 pub use config::{RasterConfig, TILE};
 pub use forward::render;
 
@@ -209,7 +209,7 @@ pub struct ImageGrads<'a> {
 }
 
 /// d(loss)/d(every input), laid out like the inputs.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct Gradients {
     pub means: Vec<Real>,
     pub log_scales: Vec<Real>,
