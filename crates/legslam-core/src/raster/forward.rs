@@ -3,7 +3,7 @@
 use rayon::prelude::*;
 
 use super::math::{sigmoid, V2, V3};
-use super::project::{color_raw, extent, geometry, Pinhole};
+use super::project::{color_raw, extent, extent_bound, geometry, Pinhole};
 use super::tiles::{bin, rect, Bins, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
 use crate::Real;
@@ -142,10 +142,21 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
         .with_min_len(1024)
         .map(|i| {
             let culled = (Splat::default(), [0; 4], 0.0);
+            let opacity = sigmoid(g.opacity_logits[i]);
+            // Most of a large map lies outside any one view: rule those out before the full
+            // projection.
+            match extent_bound(g, i, cam, &pin, opacity, cfg) {
+                Some((xy, e)) => {
+                    let r = rect(&grid, xy.x, xy.y, e.x, e.y);
+                    if r[0] >= r[2] || r[1] >= r[3] {
+                        return culled;
+                    }
+                }
+                None => return culled,
+            }
             let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
                 return culled;
             };
-            let opacity = sigmoid(g.opacity_logits[i]);
             let Some(ext) = extent(&geo, opacity, cfg) else {
                 return culled;
             };

@@ -55,6 +55,14 @@ pub(crate) struct Geometry {
     pub xy: V2,
 }
 
+/// Gaussian `i`'s centre in camera coordinates; `None` outside the near and far planes.
+#[inline]
+fn camera_point(g: &Gaussians, i: usize, cam: &Camera, cfg: &RasterConfig) -> Option<V3> {
+    let m = &g.means[3 * i..3 * i + 3];
+    let p = cam.rotation * V3::new(m[0], m[1], m[2]) + cam.translation;
+    (p.z > cfg.near && p.z < cfg.far).then_some(p)
+}
+
 /// Projects Gaussian `i`; `None` when it is behind the near plane, beyond the far plane or
 /// degenerate. Image-extent culling is the caller's.
 #[inline]
@@ -65,12 +73,8 @@ pub(crate) fn geometry(
     pin: &Pinhole,
     cfg: &RasterConfig,
 ) -> Option<Geometry> {
-    let m = &g.means[3 * i..3 * i + 3];
-    let p_cam = cam.rotation * V3::new(m[0], m[1], m[2]) + cam.translation;
+    let p_cam = camera_point(g, i, cam, cfg)?;
     let z = p_cam.z;
-    if !(z > cfg.near && z < cfg.far) {
-        return None;
-    }
     let qr = &g.quats[4 * i..4 * i + 4];
     let q_norm = (qr[0] * qr[0] + qr[1] * qr[1] + qr[2] * qr[2] + qr[3] * qr[3]).sqrt();
     if !(q_norm > 0.0) {
@@ -119,6 +123,39 @@ pub(crate) fn geometry(
         conic,
         xy,
     })
+}
+
+/// The centre (pixels) and half extents that bound what [`geometry`] and [`extent`] would give
+/// Gaussian `i` at `opacity`, from its centre and largest scale alone (`None` where
+/// `geometry` culls by depth): a cheap test that skips the full projection of Gaussians that
+/// cannot reach the image. The Jacobian's rows have norm (f / z) sqrt(1 + s^2), and the 3D
+/// covariance's largest eigenvalue is the largest scale squared.
+#[inline]
+pub(crate) fn extent_bound(
+    g: &Gaussians,
+    i: usize,
+    cam: &Camera,
+    pin: &Pinhole,
+    opacity: Real,
+    cfg: &RasterConfig,
+) -> Option<(V2, V2)> {
+    let p = camera_point(g, i, cam, cfg)?;
+    let z = p.z;
+    let ls = &g.log_scales[3 * i..3 * i + 3];
+    let s2 = (2.0 * ls[0].max(ls[1]).max(ls[2])).exp();
+    let (tx, ty) = (p.x / z, p.y / z);
+    let sx = tx.clamp(pin.lim_x.0, pin.lim_x.1);
+    let sy = ty.clamp(pin.lim_y.0, pin.lim_y.1);
+    let level = (opacity / cfg.alpha_min).ln().max(0.0);
+    // Slack well above rounding, so that the bound never falls below the exact extent.
+    let half = |f: Real, s: Real| {
+        let var = (f / z) * (f / z) * (1.0 + s * s) * s2 + cfg.dilation;
+        (2.0 * level * var).sqrt() * 1.01 + 0.01
+    };
+    Some((
+        V2::new(pin.fx * tx + pin.cx, pin.fy * ty + pin.cy),
+        V2::new(half(pin.fx, sx), half(pin.fy, sy)),
+    ))
 }
 
 /// Half extents (x, y) in pixels of the region where the Gaussian's alpha can reach
@@ -338,4 +375,76 @@ pub(crate) fn backward_one(
     g_rho += g_p;
     g_phi += geo.p_cam.cross(g_p);
     [g_rho.x, g_rho.y, g_rho.z, g_phi.x, g_phi.y, g_phi.z]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Intrinsics;
+    use crate::rng::Rng;
+
+    /// The cheap bound contains the exact extent of every Gaussian the full projection keeps,
+    /// over random sizes, shapes, opacities, orientations and positions in and around the view
+    /// (behind the camera, grazing the near plane, far off-axis).
+    #[test]
+    fn extent_bound_contains_the_exact_extent() {
+        let mut rng = Rng::new(7);
+        let n = 20_000;
+        let mut means = Vec::new();
+        let mut log_scales = Vec::new();
+        let mut quats = Vec::new();
+        let mut logits = Vec::new();
+        for _ in 0..n {
+            let z = rng.uniform(-0.5, 6.0);
+            means.extend([rng.uniform(-4.0, 4.0), rng.uniform(-3.0, 3.0), z].map(|v| v as Real));
+            log_scales.extend([0; 3].map(|_| rng.uniform(-7.0, 0.5) as Real));
+            let q = [0; 4].map(|_| rng.normal());
+            let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
+            quats.extend(q.map(|v| (v / norm) as Real));
+            logits.push(rng.uniform(-8.0, 8.0) as Real);
+        }
+        let sh = vec![0.0; n * 3];
+        let g = Gaussians {
+            means: &means,
+            log_scales: &log_scales,
+            quats: &quats,
+            opacity_logits: &logits,
+            sh: &sh,
+            sh_coeffs: 1,
+            features: &[],
+            num_features: 0,
+        };
+        let intr = Intrinsics::from_array([300.0, 310.0, 159.5, 119.5], 320, 240);
+        let a = 0.3f64;
+        let w2c = [
+            [a.cos(), 0.0, a.sin(), 0.1],
+            [0.0, 1.0, 0.0, -0.2],
+            [-a.sin(), 0.0, a.cos(), 0.3],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        let cam = Camera::new(intr, &w2c).unwrap();
+        let cfg = RasterConfig::default();
+        let pin = Pinhole::new(&cam, &cfg);
+        let mut kept = 0;
+        for (i, &logit) in logits.iter().enumerate() {
+            let opacity = sigmoid(logit);
+            let exact = geometry(&g, i, &cam, &pin, &cfg)
+                .and_then(|geo| extent(&geo, opacity, &cfg).map(|e| (geo.xy, e)));
+            let Some((xy, e)) = exact else { continue };
+            kept += 1;
+            let (bxy, be) = extent_bound(&g, i, &cam, &pin, opacity, &cfg)
+                .unwrap_or_else(|| panic!("Gaussian {i}: projected, but the bound culls it"));
+            assert_eq!(bxy, xy, "Gaussian {i}: centre");
+            for (lo_b, hi_b, lo, hi) in [
+                (bxy.x - be.x, bxy.x + be.x, xy.x - e.x, xy.x + e.x),
+                (bxy.y - be.y, bxy.y + be.y, xy.y - e.y, xy.y + e.y),
+            ] {
+                assert!(
+                    lo_b <= lo && hi_b >= hi,
+                    "Gaussian {i}: bound {be} < extent {e}"
+                );
+            }
+        }
+        assert!(kept > n / 4, "only {kept} of {n} Gaussians projected");
+    }
 }
