@@ -186,9 +186,8 @@ def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, sce
     cfg = SLAMConfig(features=False, final_iters=60, mapping_thread=True)
     threaded = run(open_dataset(scene), tmp_path, cfg, progress=False)
     m, slam = threaded["metrics"], threaded["slam"]
-    # grown alike (a mapping thread grows from every other pixel), never trained
-    frozen = SLAMConfig(features=False, map_iters_keyframe=0, map_iters_frame=0, final_iters=0,
-                        mapper={"grow_stride": 2})
+    # grown alike, never trained
+    frozen = SLAMConfig(features=False, map_iters_keyframe=0, map_iters_frame=0, final_iters=0)
     unmapped = run(open_dataset(scene), tmp_path / "frozen", frozen, progress=False)
     assert m["ate_rmse_m"] < 0.01 and m["lost_frames"] == 0, m
     # the worker trained beyond the final iterations, and the map is better for it
@@ -239,16 +238,49 @@ def test_a_failure_in_the_mapping_thread_reaches_the_tracker():
         t.stop()
 
 
-def test_a_mapping_thread_grows_from_every_other_pixel_unless_told_otherwise():
-    def grow_stride(**cfg):
-        slam = SLAM(SLAMConfig(features=False, final_iters=0, **cfg), np.eye(3), 64, 48)
-        stride = slam.mapper.config()["grow_stride"]
-        slam.finish()
-        return stride
+def test_new_gaussians_are_seeded_on_a_grid_about_grow_width_wide():
+    def grow_stride(width, **cfg):
+        slam = SLAM(SLAMConfig(features=False, final_iters=0, **cfg), np.eye(3), width, width * 3 // 4)
+        return slam.mapper.config()["grow_stride"]
 
-    assert grow_stride() == 1
-    assert grow_stride(mapping_thread=True) == 2
-    assert grow_stride(mapping_thread=True, mapper={"grow_stride": 1}) == 1
+    assert grow_stride(640) == 2  # trained at 320 wide
+    assert grow_stride(160) == 1
+    assert grow_stride(640, grow_width=80) == 4
+    assert grow_stride(640, mapper={"grow_stride": 1}) == 1
+    with pytest.raises(ValueError, match="grow_width"):
+        grow_stride(640, grow_width=0)
+
+
+def test_mapping_thread_options_out_of_range_are_named():
     for bad in ({"mapping_batch": 0}, {"mapping_threads": -1}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SLAM(SLAMConfig(features=False, mapping_thread=True, **bad), np.eye(3), 64, 48)
+
+
+def test_frames_follow_their_refined_keyframes(scene):
+    """With keyframe pose refinement, every frame keeps its pose relative to the keyframe it was
+    tracked after, keyframes end where the mapper moved them, and the trajectory stays good."""
+    seq = open_dataset(scene)
+    f0 = seq[0]
+    cfg = SLAMConfig(features=False, final_iters=30,
+                     mapper={"pose_lr_translation": 1e-3, "pose_lr_rotation": 3e-3})
+    slam = SLAM(cfg, f0.K, 160, 120)
+    live, kf_of = [], []
+    for i in range(len(seq)):
+        f = seq[i]
+        r = slam.step(f.rgb, f.depth)
+        live.append(r.pose)
+        kf_of.append(len(slam.keyframe_frames) - 1)
+    live_kf = [live[i] for i in slam.keyframe_frames]
+    slam.finish()
+    refined = slam.mapper.keyframe_poses()
+    assert len(refined) == len(slam.keyframe_frames) >= 2
+    moved = max(np.abs(refined[k] - live_kf[k]).max() for k in range(1, len(refined)))
+    assert moved > 1e-5, "no keyframe pose was refined"
+    np.testing.assert_array_equal(refined[0], live_kf[0])
+    for i, k in enumerate(kf_of):
+        before = np.linalg.inv(live_kf[k]) @ live[i]
+        after = np.linalg.inv(refined[k]) @ slam.poses[i]
+        np.testing.assert_allclose(after, before, atol=1e-9)
+    gt = np.stack([seq[i].pose for i in range(len(seq))])
+    assert ate(gt, np.stack(slam.poses))["rmse"] < 0.01

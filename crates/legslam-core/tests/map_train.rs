@@ -188,3 +188,47 @@ fn training_windows_choose_which_keyframes_are_trained() {
     assert_eq!(uses(&m), [2, 2, 4]);
     assert_eq!(m.train_window(3, 0).unwrap().iterations, 0);
 }
+
+/// Pose refinement: a keyframe placed 4 cm and 1.5 degrees off the view it shows is pulled
+/// back onto it by mapping it together with a keyframe of that view at the right pose, which
+/// never moves itself (it anchors the map).
+#[test]
+fn keyframe_poses_are_refined_towards_the_view_they_show() {
+    use legslam_core::track::se3;
+    use nalgebra::{Matrix4, Vector6};
+
+    let mut cfg = MapperConfig {
+        finest_level: 0,
+        grow_level: 0,
+        pose_lr_translation: 2e-3,
+        pose_lr_rotation: 2e-3,
+        ..Default::default()
+    };
+    cfg.densify.interval = 0;
+    let mut m = Mapper::new(cfg).unwrap();
+    let (rgb, depth, k) = wall(64, 48);
+    m.add_keyframe(rgb.clone(), depth.clone(), k, EYE).unwrap();
+    // A map that reproduces the view first (freshly grown splats render it a little shifted).
+    m.train(200).unwrap();
+    let off = se3::exp(&Vector6::new(0.04, -0.02, 0.0, 0.0, 0.0, 0.026));
+    m.config.grow.alpha_threshold = 0.0; // the second keyframe adds no Gaussians
+    m.config.grow.depth_tolerance = 1e9;
+    m.config.grow.occluded_tolerance = 1e9;
+    let pose = std::array::from_fn(|i| std::array::from_fn(|j| off[(i, j)]));
+    let (_, added) = m.add_keyframe(rgb, depth, k, pose).unwrap();
+    assert_eq!(added, 0);
+    let error = |m: &Mapper, i: usize| {
+        let e = se3::log(&Matrix4::from_fn(|r, c| m.keyframes[i].pose[r][c]));
+        (e.fixed_rows::<3>(0).norm(), e.fixed_rows::<3>(3).norm())
+    };
+    let (t0, r0) = error(&m, 1);
+    m.train_window(300, 2).unwrap();
+    let (t1, r1) = error(&m, 1);
+    assert!(
+        t1 < 0.25 * t0 && r1 < 0.25 * r0,
+        "translation {t0} -> {t1}, rotation {r0} -> {r1}"
+    );
+    assert_eq!(m.keyframes[0].pose, EYE, "the first keyframe moved");
+    assert_eq!(m.keyframes[0].pose_adam.steps(), 0);
+    assert!(m.keyframes[1].pose_adam.steps() > 100);
+}

@@ -203,6 +203,19 @@ impl PyMapper {
         Ok(d)
     }
 
+    /// Every keyframe's camera-to-world pose (refined by mapping when pose learning rates are
+    /// set), in keyframe order: n x 4 x 4.
+    fn keyframe_poses<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let flat: Vec<f64> = self
+            .inner
+            .keyframes
+            .iter()
+            .flat_map(|k| k.pose.into_iter().flatten())
+            .collect();
+        let n = self.inner.keyframes.len();
+        Ok(PyArray1::from_vec(py, flat).reshape([n, 4, 4])?.into_any())
+    }
+
     /// The map's arrays (copies).
     fn export<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let m: &GaussianMap = &self.inner.map;

@@ -2,6 +2,7 @@
 //! the encoder has produced it, its feature grid.
 
 use super::features::FeatureGrid;
+use super::pose::PoseAdam;
 use crate::camera::{Intrinsics, Pose};
 use crate::Real;
 
@@ -16,8 +17,10 @@ pub struct Level {
 #[derive(Clone, Debug)]
 pub struct Keyframe {
     pub id: u32,
-    /// Camera-to-world.
+    /// Camera-to-world; refined by mapping when pose learning rates are set.
     pub pose: Pose,
+    /// Optimiser state of the pose.
+    pub pose_adam: PoseAdam,
     /// Level 0 is full resolution; level l is downsampled by 2^l.
     pub levels: Vec<Level>,
     pub features: Option<FeatureGrid>,
@@ -69,6 +72,7 @@ impl Keyframe {
         Ok(Keyframe {
             id,
             pose,
+            pose_adam: PoseAdam::default(),
             levels,
             features: None,
             uses: 0,

@@ -1,10 +1,11 @@
 //! The Gaussian map and everything that changes it: growth from keyframes, pruning,
-//! densification, and training against keyframes.
+//! densification, and training against keyframes (and their poses).
 
 pub mod densify;
 pub mod features;
 pub mod grow;
 pub mod keyframe;
+pub mod pose;
 pub mod prune;
 pub mod store;
 pub mod train;

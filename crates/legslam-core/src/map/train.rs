@@ -44,6 +44,10 @@ pub struct MapperConfig {
     pub grow: GrowConfig,
     pub prune: PruneConfig,
     pub densify: DensifyConfig,
+    /// Learning rates of keyframe poses (metres and radians per step; 0 keeps poses fixed).
+    /// The first keyframe never moves: it anchors the map.
+    pub pose_lr_translation: Real,
+    pub pose_lr_rotation: Real,
     pub seed: u64,
 }
 
@@ -66,6 +70,8 @@ impl Default for MapperConfig {
             },
             prune: PruneConfig::default(),
             densify: DensifyConfig::default(),
+            pose_lr_translation: 0.0,
+            pose_lr_rotation: 0.0,
             seed: 0,
         }
     }
@@ -130,6 +136,14 @@ impl Mapper {
                 "finest_level ({}) and grow_level ({}) must be below levels ({})",
                 config.finest_level, config.grow_level, config.levels
             ));
+        }
+        for (name, lr) in [
+            ("pose_lr_translation", config.pose_lr_translation),
+            ("pose_lr_rotation", config.pose_lr_rotation),
+        ] {
+            if !(lr.is_finite() && lr >= 0.0) {
+                return Err(format!("{name} must be finite and >= 0, got {lr}"));
+            }
         }
         let coeffs = crate::raster::sh::num_coeffs(config.sh_degree);
         let adam = Adam::new(config.adam, 0, coeffs, config.num_features)?;
@@ -402,8 +416,9 @@ impl Mapper {
         report.last = terms;
 
         let t = Instant::now();
+        self.refine_pose(ki);
         let grads = &self.scratch.grads;
-        self.stats.add(&grads.means2d, &r.radii);
+        self.stats.add(&grads.means2d, &r.radii, w, h);
         self.adam.step(self.map.params_mut(), Groups::from(grads))?;
         normalize_quats(&mut self.map.quats)?;
         self.iteration += 1;
@@ -413,6 +428,21 @@ impl Mapper {
         }
         report.step_s += t.elapsed().as_secs_f64();
         Ok(())
+    }
+
+    /// Moves keyframe `ki`'s pose along this iteration's pose gradient (never the first
+    /// keyframe's, which anchors the map).
+    fn refine_pose(&mut self, ki: usize) {
+        let c = &self.config;
+        let lr = [
+            f64::from(c.pose_lr_translation),
+            f64::from(c.pose_lr_rotation),
+        ];
+        if ki == 0 || lr == [0.0, 0.0] {
+            return;
+        }
+        let kf = &mut self.keyframes[ki];
+        kf.pose = kf.pose_adam.step(&kf.pose, &self.scratch.grads.pose, lr);
     }
 
     /// Renders only the features of keyframe `ki` at pyramid level `lf`; returns the feature
@@ -491,8 +521,11 @@ impl Mapper {
     }
 }
 
-/// `into += from`, group by group (the pose and screen-space gradients are left alone).
+/// `into += from`, group by group and the pose (the screen-space gradients are left alone).
 fn add_grads(into: &mut Gradients, from: &Gradients) {
+    for (a, b) in into.pose.iter_mut().zip(&from.pose) {
+        *a += b;
+    }
     for (a, b) in [
         (&mut into.means, &from.means),
         (&mut into.log_scales, &from.log_scales),
@@ -599,6 +632,7 @@ options! {
     "grow_stride" => grow.stride: usize,
     "grow_alpha_threshold" => grow.alpha_threshold: Real,
     "grow_depth_tolerance" => grow.depth_tolerance: Real,
+    "grow_occluded_tolerance" => grow.occluded_tolerance: Real,
     "grow_opacity" => grow.opacity: Real,
     "grow_scale" => grow.scale: Real,
     "depth_min" => grow.depth_min: Real,
@@ -609,4 +643,6 @@ options! {
     "densify_grad_threshold" => densify.grad_threshold: Real,
     "densify_split_scale" => densify.split_scale: Real,
     "max_gaussians" => densify.max_gaussians: usize,
+    "pose_lr_translation" => pose_lr_translation: Real,
+    "pose_lr_rotation" => pose_lr_rotation: Real,
 }
