@@ -74,6 +74,9 @@ def main() -> int:
         v = m[name]
         print(f"| map at {name.replace('_', ' ')} ({v['count']} views): PSNR / SSIM / depth L1 | "
               f"{v['psnr']:.2f} dB / {v['ssim']:.3f} / {v['depth_l1_cm']:.2f} cm |")
+        if "psnr_exposed" in v:
+            print(f"| map at {name.replace('_', ' ')}, under each frame's keyframe exposure: PSNR | "
+                  f"{v['psnr_exposed']:.2f} dB |")
     print(f"| Gaussians | {m['gaussians']} |")
     print(f"| peak memory (RSS) | {peak_mb:.0f} MB |")
     print(f"| frames per second, whole pipeline | {t['fps']:.2f} |")

@@ -284,3 +284,39 @@ def test_frames_follow_their_refined_keyframes(scene):
         np.testing.assert_allclose(after, before, atol=1e-9)
     gt = np.stack([seq[i].pose for i in range(len(seq))])
     assert ate(gt, np.stack(slam.poses))["rmse"] < 0.01
+
+
+class _Dimmed:
+    """The scene with its second half exposed 25% darker."""
+
+    def __init__(self, seq):
+        self.seq = seq
+
+    def __len__(self):
+        return len(self.seq)
+
+    def __getitem__(self, i):
+        import dataclasses
+
+        f = self.seq[i]
+        if i < len(self.seq) // 2:
+            return f
+        return dataclasses.replace(f, rgb=(f.rgb.astype(np.float32) * 0.75).astype(np.uint8))
+
+
+def test_trained_exposures_follow_a_darker_half_of_the_sequence(scene, tmp_path):
+    seq = _Dimmed(open_dataset(scene))
+    plain = run(seq, tmp_path / "plain", SLAMConfig(features=False, final_iters=30), progress=False)
+    assert plain["slam"].frame_exposures() is None
+    assert "psnr_exposed" not in plain["metrics"]["every_5"]
+    cfg = SLAMConfig(features=False, final_iters=30, mapper={"exposure_lr": 0.01})
+    exposed = run(seq, tmp_path / "exposed", cfg, progress=False)
+    e = exposed["slam"].frame_exposures()
+    assert e.shape == (len(seq), 2, 3)
+    np.testing.assert_array_equal(e[0], [[1, 1, 1], [0, 0, 0]])  # the first keyframe's is the map's
+    # the darker frames' keyframes learned (most of) the change: mid-grey comes out darker
+    late = e[-1]
+    assert (late[0] * 0.5 + late[1]).mean() < 0.5 - 0.05, late
+    m, p = exposed["metrics"]["every_5"], plain["metrics"]["every_5"]
+    assert m["psnr_exposed"] > m["psnr"] + 1.0, m
+    assert m["psnr_exposed"] > p["psnr"] + 1.0, (m, p)

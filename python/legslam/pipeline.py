@@ -89,12 +89,22 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
         out["ate_mean_m"] = stats["mean"]
     picked = sorted(set(range(0, n, every)))
     show = set(picked[:: max(1, len(picked) // n_renders)][:n_renders])
+    # With trained exposures, also PSNR under the exposure SLAM estimated for each frame (its
+    # keyframe's): the map's colour is the first keyframe's exposure, the frames' varies.
+    exposures = slam.frame_exposures()
     for name, frames in (("every_%d" % every, picked), ("at_keyframes", slam.keyframe_frames)):
         vals = {"psnr": [], "ssim": [], "depth_l1_cm": []}
+        if exposures is not None:
+            vals["psnr_exposed"] = []
         for i in frames:
             f = seq[i]
             r = slam.render(slam.poses[i], features=renders_dir is not None and i in show)
             color = np.clip(r["color"], 0, 1)
+            if exposures is not None:
+                gain, bias = exposures[i]
+                exposed = np.clip(r["color"] * gain + bias, 0, 1)
+                vals["psnr_exposed"].append(psnr(exposed, f.rgb.astype(np.float32) / 255.0,
+                                                 data_range=1.0))
             vals["psnr"].append(psnr(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
             vals["ssim"].append(ssim(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
             vals["depth_l1_cm"].append(depth_l1_cm(r["depth"], f.depth))

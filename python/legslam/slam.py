@@ -384,6 +384,16 @@ class SLAM:
         self.poses = [refined[k] @ rel if 0 <= k < len(refined) else p
                       for (k, rel), p in zip(self._anchors, self.poses)]
 
+    def frame_exposures(self) -> Optional[np.ndarray]:
+        """Per frame, the exposure (n x 2 x 3: per channel gain and bias, from the map's
+        colour to the camera's) of the keyframe it was tracked after; None when exposures are
+        not trained (mapper option `exposure_lr`)."""
+        self._check_idle()
+        if not self.mapper.config()["exposure_lr"]:
+            return None
+        kf = self.mapper.keyframe_exposures()
+        return np.stack([kf[k] for k, _ in self._anchors]) if self._anchors else None
+
     def _check_idle(self) -> None:
         if self.mapping_in_thread:
             raise RuntimeError("the mapping thread owns the map while SLAM runs: call finish() first")

@@ -4,6 +4,7 @@
 use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::map::train::{Mapper, MapperConfig};
 use legslam_core::map::{FeatureGrid, GaussianMap};
+use legslam_core::Real;
 use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
@@ -214,6 +215,25 @@ impl PyMapper {
             .collect();
         let n = self.inner.keyframes.len();
         Ok(PyArray1::from_vec(py, flat).reshape([n, 4, 4])?.into_any())
+    }
+
+    /// Every keyframe's exposure as n x 2 x 3: per channel the gain and the bias that take
+    /// the map's colour to what the camera recorded (1 and 0 when exposures are not trained).
+    fn keyframe_exposures<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let flat: Vec<Real> = self
+            .inner
+            .keyframes
+            .iter()
+            .flat_map(|k| {
+                k.exposure
+                    .log_gain
+                    .map(Real::exp)
+                    .into_iter()
+                    .chain(k.exposure.bias)
+            })
+            .collect();
+        let n = self.inner.keyframes.len();
+        Ok(PyArray1::from_vec(py, flat).reshape([n, 2, 3])?.into_any())
     }
 
     /// The map's arrays (copies).

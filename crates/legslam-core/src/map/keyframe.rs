@@ -1,6 +1,7 @@
 //! A keyframe: its images as an image pyramid for coarse-to-fine training, its pose and, once
 //! the encoder has produced it, its feature grid.
 
+use super::exposure::Exposure;
 use super::features::FeatureGrid;
 use super::pose::PoseAdam;
 use crate::camera::{Intrinsics, Pose};
@@ -21,6 +22,8 @@ pub struct Keyframe {
     pub pose: Pose,
     /// Optimiser state of the pose.
     pub pose_adam: PoseAdam,
+    /// What the camera's exposure did to this keyframe's colours (trained when enabled).
+    pub exposure: Exposure,
     /// Level 0 is full resolution; level l is downsampled by 2^l.
     pub levels: Vec<Level>,
     pub features: Option<FeatureGrid>,
@@ -73,6 +76,7 @@ impl Keyframe {
             id,
             pose,
             pose_adam: PoseAdam::default(),
+            exposure: Exposure::default(),
             levels,
             features: None,
             uses: 0,

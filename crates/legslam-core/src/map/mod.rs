@@ -1,7 +1,8 @@
 //! The Gaussian map and everything that changes it: growth from keyframes, pruning,
-//! densification, and training against keyframes (and their poses).
+//! densification, and training against keyframes (and their poses and exposures).
 
 pub mod densify;
+pub mod exposure;
 pub mod features;
 pub mod grow;
 pub mod keyframe;

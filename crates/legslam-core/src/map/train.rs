@@ -8,6 +8,7 @@ use rayon::prelude::*;
 
 use super::densify::{densify, DensifyConfig, GradStats};
 use super::grow::{assign_features, grow, GrowConfig, RenderedView};
+use super::pose::step_pose;
 use super::prune::{keep_mask, PruneConfig};
 use super::{FeatureGrid, GaussianMap, Keyframe};
 use crate::camera::{invert_rigid, Intrinsics, Pose};
@@ -48,6 +49,9 @@ pub struct MapperConfig {
     /// The first keyframe never moves: it anchors the map.
     pub pose_lr_translation: Real,
     pub pose_lr_rotation: Real,
+    /// Learning rate of keyframe exposures (per-channel log gain and bias; 0 disables). The
+    /// first keyframe's exposure is the map's.
+    pub exposure_lr: Real,
     pub seed: u64,
 }
 
@@ -72,6 +76,7 @@ impl Default for MapperConfig {
             densify: DensifyConfig::default(),
             pose_lr_translation: 0.0,
             pose_lr_rotation: 0.0,
+            exposure_lr: 0.0,
             seed: 0,
         }
     }
@@ -115,6 +120,8 @@ struct Scratch {
     d_depth: Vec<Real>,
     d_feat: Vec<Real>,
     target: Vec<Real>,
+    /// The render under the keyframe's exposure.
+    exposed: Vec<Real>,
     backward: BackwardScratch,
     /// Gradients of the colour pass, and of the features-only pass.
     grads: Gradients,
@@ -140,6 +147,7 @@ impl Mapper {
         for (name, lr) in [
             ("pose_lr_translation", config.pose_lr_translation),
             ("pose_lr_rotation", config.pose_lr_rotation),
+            ("exposure_lr", config.exposure_lr),
         ] {
             if !(lr.is_finite() && lr >= 0.0) {
                 return Err(format!("{name} must be finite and >= 0, got {lr}"));
@@ -364,10 +372,16 @@ impl Mapper {
         if let (true, Some(g)) = (features_here, kf.features.as_ref()) {
             g.upsample_into(w, h, &mut sc.target);
         }
+        // The loss sees the render as this keyframe's exposure makes it (the first keyframe's
+        // exposure is the map's own).
+        let exposed = c.exposure_lr > 0.0 && ki != 0;
+        if exposed {
+            kf.exposure.apply(&r.color, &mut sc.exposed);
+        }
         let inputs = LossInputs {
             width: w,
             height: h,
-            color: &r.color,
+            color: if exposed { &sc.exposed } else { &r.color },
             target_color: &level.rgb,
             color_mask: None,
             depth: Some(DepthInputs {
@@ -389,6 +403,7 @@ impl Mapper {
                 features: features_here.then_some(&mut sc.d_feat[..]),
             },
         )?;
+        let exposure_grad = exposed.then(|| kf.exposure.backward(&r.color, &mut sc.d_color));
         report.loss_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
@@ -417,6 +432,10 @@ impl Mapper {
 
         let t = Instant::now();
         self.refine_pose(ki);
+        if let Some(g) = exposure_grad {
+            let lr = f64::from(self.config.exposure_lr);
+            self.keyframes[ki].exposure.step(&g, lr);
+        }
         let grads = &self.scratch.grads;
         self.stats.add(&grads.means2d, &r.radii, w, h);
         self.adam.step(self.map.params_mut(), Groups::from(grads))?;
@@ -442,7 +461,7 @@ impl Mapper {
             return;
         }
         let kf = &mut self.keyframes[ki];
-        kf.pose = kf.pose_adam.step(&kf.pose, &self.scratch.grads.pose, lr);
+        kf.pose = step_pose(&mut kf.pose_adam, &kf.pose, &self.scratch.grads.pose, lr);
     }
 
     /// Renders only the features of keyframe `ki` at pyramid level `lf`; returns the feature
@@ -645,4 +664,5 @@ options! {
     "max_gaussians" => densify.max_gaussians: usize,
     "pose_lr_translation" => pose_lr_translation: Real,
     "pose_lr_rotation" => pose_lr_rotation: Real,
+    "exposure_lr" => exposure_lr: Real,
 }
