@@ -9,7 +9,7 @@
 use rayon::prelude::*;
 
 use super::forward::{alpha_at, split_chunks};
-use super::math::{V2, V3};
+use super::math::{dot, V2, V3};
 use super::project::{backward_one, geometry, ParamGrads, Pinhole, ScreenGrads};
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, Rendered, TILE};
@@ -295,9 +295,4 @@ fn zeroed(v: &mut Vec<Real>, len: usize) {
     v.truncate(len);
     v.par_chunks_mut(1 << 16).for_each(|c| c.fill(0.0));
     v.resize(len, 0.0);
-}
-
-#[inline]
-fn dot(a: &[Real], b: &[Real]) -> Real {
-    a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
