@@ -174,6 +174,7 @@ fn training_windows_choose_which_keyframes_are_trained() {
         finest_level: 0,
         grow_level: 1,
         window: 1,
+        revisit: 0.0,
         ..Default::default()
     };
     let mut m = Mapper::new(cfg).unwrap();
@@ -231,4 +232,32 @@ fn keyframe_poses_are_refined_towards_the_view_they_show() {
     assert_eq!(m.keyframes[0].pose, EYE, "the first keyframe moved");
     assert_eq!(m.keyframes[0].pose_adam.steps(), 0);
     assert!(m.keyframes[1].pose_adam.steps() > 100);
+}
+
+/// `revisit`: that share of iterations trains a keyframe older than the window, drawn
+/// uniformly; the rest stay in the window.
+#[test]
+fn a_share_of_iterations_revisits_older_keyframes() {
+    let cfg = MapperConfig {
+        finest_level: 0,
+        grow_level: 1,
+        window: 1,
+        revisit: 0.5,
+        ..Default::default()
+    };
+    let mut m = Mapper::new(cfg).unwrap();
+    for _ in 0..4 {
+        let (rgb, depth, k) = wall(32, 24);
+        m.add_keyframe(rgb, depth, k, EYE).unwrap();
+    }
+    m.train(80).unwrap();
+    let uses: Vec<usize> = m.keyframes.iter().map(|k| k.uses).collect();
+    let older: usize = uses[..3].iter().sum();
+    assert!((25..=55).contains(&older), "{uses:?}");
+    assert!(uses[..3].iter().all(|&u| u > 3), "{uses:?}");
+    let bad = MapperConfig {
+        revisit: 1.5,
+        ..Default::default()
+    };
+    assert!(Mapper::new(bad).err().unwrap().contains("revisit"));
 }

@@ -34,8 +34,11 @@ pub struct MapperConfig {
     /// Features are trained this many pyramid levels below the colour (coarser), at most at
     /// the coarsest level.
     pub feature_level_offset: usize,
-    /// Keyframes drawn from: the most recent this many.
+    /// Keyframes drawn from: the most recent this many ...
     pub window: usize,
+    /// ... and in this share of iterations one older keyframe, so that the map a camera
+    /// comes back to keeps its shape instead of being painted over by the new views alone.
+    pub revisit: Real,
     /// Pyramid level at which a new keyframe's depth seeds new Gaussians.
     pub grow_level: usize,
     pub sh_degree: usize,
@@ -63,6 +66,9 @@ impl Default for MapperConfig {
             uses_per_level: 2,
             feature_level_offset: 1,
             window: 10,
+            // 7-Scenes, 1000 frames, the camera coming back: 21.75 dB and ATE 4.5 cm against
+            // 20.3 dB and 5.0 cm without (21.3 dB with 0.3).
+            revisit: 0.5,
             grow_level: 1,
             sh_degree: 0,
             num_features: 0,
@@ -152,6 +158,12 @@ impl Mapper {
             if !(lr.is_finite() && lr >= 0.0) {
                 return Err(format!("{name} must be finite and >= 0, got {lr}"));
             }
+        }
+        if !(0.0..=1.0).contains(&config.revisit) {
+            return Err(format!(
+                "revisit must lie in [0, 1], got {}",
+                config.revisit
+            ));
         }
         let coeffs = crate::raster::sh::num_coeffs(config.sh_degree);
         let adam = Adam::new(config.adam, 0, coeffs, config.num_features)?;
@@ -304,7 +316,12 @@ impl Mapper {
     }
 
     /// The next keyframe to train on: a shuffled pass over the most recent `window`.
+    /// With probability `revisit`, a keyframe older than the window instead, drawn uniformly.
     fn next_keyframe(&mut self, window: usize) -> usize {
+        let older = self.keyframes.len().saturating_sub(window);
+        if older > 0 && self.rng.next_f64() < f64::from(self.config.revisit) {
+            return self.rng.below(older);
+        }
         if self.queue.is_empty() || window != self.queue_window {
             let n = self.keyframes.len();
             self.queue = (n.saturating_sub(window)..n).collect();
@@ -633,6 +650,7 @@ options! {
     "uses_per_level" => uses_per_level: usize,
     "feature_level_offset" => feature_level_offset: usize,
     "window" => window: usize,
+    "revisit" => revisit: Real,
     "grow_level" => grow_level: usize,
     "sh_degree" => sh_degree: usize,
     "num_features" => num_features: usize,

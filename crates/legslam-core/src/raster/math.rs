@@ -103,9 +103,16 @@ mod tests {
         for n in [0, 1, 7, 8, 9, 63, 64, 65, 130] {
             let a: Vec<Real> = (0..n).map(|_| rng.uniform(-1.0, 1.0) as Real).collect();
             let b: Vec<Real> = (0..n).map(|_| rng.uniform(-1.0, 1.0) as Real).collect();
-            let plain: f64 = a.iter().zip(&b).map(|(x, y)| f64::from(*x) * f64::from(*y)).sum();
+            let plain: f64 = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| f64::from(*x) * f64::from(*y))
+                .sum();
             let fast = f64::from(dot(&a, &b));
-            assert!((fast - plain).abs() < 1e-5 * (1.0 + n as f64), "n={n}: {fast} vs {plain}");
+            assert!(
+                (fast - plain).abs() < 1e-5 * (1.0 + n as f64),
+                "n={n}: {fast} vs {plain}"
+            );
         }
     }
 }
