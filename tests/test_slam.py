@@ -91,9 +91,11 @@ def test_config_files_and_unknown_options(tmp_path):
 
 
 def test_cli_run_writes_a_trajectory_per_frame(scene, tmp_path, capsys):
-    assert main(["run", str(scene), "--no-features", "--max-frames", "8", "--out", str(tmp_path), "--quiet"]) == 0
+    assert main(["run", str(scene), "--no-features", "--max-frames", "8", "--out", str(tmp_path), "--quiet",
+                 "--final-iters", "7"]) == 0
     _, poses = read_tum(tmp_path / "trajectory.txt")
     assert len(poses) == 8
+    assert json.loads((tmp_path / "config.json").read_text())["final_iters"] == 7
     assert "ATE RMSE" in capsys.readouterr().out
 
 
@@ -102,6 +104,8 @@ def test_cli_errors_are_actionable(tmp_path, capsys):
     assert "nowhere" in capsys.readouterr().err
     assert main(["run", str(tmp_path), "--stride", "0"]) == 2
     assert "--stride must be at least 1" in capsys.readouterr().err
+    assert main(["run", str(tmp_path), "--final-iters", "-1"]) == 2
+    assert "--final-iters must be at least 0" in capsys.readouterr().err
 
 
 def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):

@@ -24,6 +24,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
                         "the iterations the spare CPU allows (config: mapping_thread)")
+    p.add_argument("--final-iters", type=int, default=None, metavar="N",
+                   help="mapping iterations over all keyframes once the frames have ended "
+                        "(default 100; more give a sharper map: config final_iters)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--viewer", choices=["rerun"], default=None,
                    help="live view: frames, poses, trajectory, Gaussian centres, renders and "
@@ -52,19 +55,29 @@ def _viewer(args):
     return RerunViewer(save=args.viewer_save)
 
 
-def run_sequence(seq, name: str, args) -> int:
+def run_config(args):
+    """The SLAMConfig the options ask for (checked before any frame is read)."""
     from .cli import UserError
-    from .pipeline import run
     from .slam import SLAMConfig
 
+    overrides = {"features": False} if args.no_features else {}
+    if args.realtime:
+        overrides["mapping_thread"] = True
+    if args.final_iters is not None:
+        if args.final_iters < 0:
+            raise UserError(f"--final-iters must be at least 0, got {args.final_iters}")
+        overrides["final_iters"] = args.final_iters
     try:
-        overrides = {"features": False} if args.no_features else {}
-        if args.realtime:
-            overrides["mapping_thread"] = True
-        config = (SLAMConfig.from_file(args.config, **overrides) if args.config
-                  else SLAMConfig(**overrides))
+        return (SLAMConfig.from_file(args.config, **overrides) if args.config
+                else SLAMConfig(**overrides))
     except (OSError, ValueError) as e:
         raise UserError(str(e)) from e
+
+
+def run_sequence(seq, name: str, args, config) -> int:
+    from .cli import UserError
+    from .pipeline import run
+
     out = Path(args.out or Path("legslam-out") / name)
     viewer = _viewer(args)
     try:
@@ -93,9 +106,10 @@ def run(args) -> int:
     _positive("--stride", args.stride)
     _positive("--max-frames", args.max_frames)
     _positive("--downscale", args.downscale)
+    config = run_config(args)
     try:
         seq = open_dataset(args.path, format=args.format, stride=args.stride,
                            max_frames=args.max_frames, downscale=args.downscale)
     except (DatasetError, FileNotFoundError) as e:
         raise UserError(str(e)) from e
-    return run_sequence(seq, Path(args.path).resolve().name, args)
+    return run_sequence(seq, Path(args.path).resolve().name, args, config)
