@@ -25,6 +25,12 @@ class UserError(Exception):
     """An error the user can act on: printed without a traceback, exit code 2."""
 
 
+def at_least(name: str, v, least: int = 1) -> None:
+    """Rejects option `name`'s value `v` below `least` (None: not given, accepted)."""
+    if v is not None and v < least:
+        raise UserError(f"{name} must be at least {least}, got {v}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="legslam",

@@ -16,9 +16,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args) -> int:
     from .datasets import open as open_dataset
     from .datasets.synthetic import default_scene
-    from .run_cmd import _positive, run_config, run_sequence
+    from .cli import at_least
+    from .run_cmd import run_config, run_sequence
 
-    _positive("--frames", args.frames)
+    at_least("--frames", args.frames)
     config = run_config(args)
     path = default_scene(n_frames=args.frames)
     print(f"built-in scene: {path}")

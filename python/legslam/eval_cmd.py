@@ -55,7 +55,7 @@ def _open_selection(path, fmt: str, selection: dict):
 
 
 def run(args) -> int:
-    from .cli import UserError
+    from .cli import UserError, at_least
     from .datasets import DatasetError
     from .eval import ate, depth_l1_cm, psnr, read_tum, rpe, ssim
     from .map import GaussianMap
@@ -64,8 +64,7 @@ def run(args) -> int:
     for name in ("trajectory.txt", "map.ply", "camera.json"):
         if not (run_dir / name).is_file():
             raise UserError(f"{run_dir} has no {name}: give a `legslam run` output folder")
-    if args.every < 1:
-        raise UserError(f"--every must be at least 1, got {args.every}")
+    at_least("--every", args.every)
     cam = json.loads((run_dir / "camera.json").read_text())
     seq_path = args.sequence or cam.get("sequence")
     if not seq_path:

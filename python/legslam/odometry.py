@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from legslam.cli import UserError
+from legslam.cli import UserError, at_least
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -80,11 +80,9 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"the dataset loaders (legslam.datasets) are not available: {e}")
     from legslam.tracking import Odometry
 
-    for name in ("stride", "downscale"):
-        if getattr(args, name) < 1:
-            raise UserError(f"--{name.replace('_', '-')} must be >= 1")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise UserError("--max-frames must be >= 1")
+    at_least("--stride", args.stride)
+    at_least("--downscale", args.downscale)
+    at_least("--max-frames", args.max_frames)
     try:
         seq = datasets.open(args.path, format=args.format, stride=args.stride,
                             max_frames=args.max_frames, downscale=args.downscale)

@@ -25,7 +25,7 @@ def run(args) -> int:
 
     import cv2
 
-    from .cli import UserError
+    from .cli import UserError, at_least
     from .eval import TrajectoryError, read_tum
     from .map import GaussianMap
     from .pipeline import feature_basis, feature_rgb
@@ -35,8 +35,7 @@ def run(args) -> int:
     if not map_path.is_file():
         raise UserError(f"no map at {map_path}")
     run_dir = map_path.parent
-    if args.every < 1:
-        raise UserError(f"--every must be at least 1, got {args.every}")
+    at_least("--every", args.every)
     cam_file = run_dir / "camera.json"
     if args.intrinsics and args.size:
         try:

@@ -36,13 +36,6 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "viewer (open it later with `rerun FILE.rrd`)")
 
 
-def _positive(name: str, v) -> None:
-    from .cli import UserError
-
-    if v is not None and v < 1:
-        raise UserError(f"{name} must be at least 1, got {v}")
-
-
 def _viewer(args):
     from .cli import UserError
 
@@ -57,15 +50,14 @@ def _viewer(args):
 
 def run_config(args):
     """The SLAMConfig the options ask for (checked before any frame is read)."""
-    from .cli import UserError
+    from .cli import UserError, at_least
     from .slam import SLAMConfig
 
     overrides = {"features": False} if args.no_features else {}
     if args.realtime:
         overrides["mapping_thread"] = True
     if args.final_iters is not None:
-        if args.final_iters < 0:
-            raise UserError(f"--final-iters must be at least 0, got {args.final_iters}")
+        at_least("--final-iters", args.final_iters, 0)
         overrides["final_iters"] = args.final_iters
     try:
         return (SLAMConfig.from_file(args.config, **overrides) if args.config
@@ -100,12 +92,12 @@ def run_sequence(seq, name: str, args, config) -> int:
 
 
 def run(args) -> int:
-    from .cli import UserError
+    from .cli import UserError, at_least
     from .datasets import DatasetError, open as open_dataset
 
-    _positive("--stride", args.stride)
-    _positive("--max-frames", args.max_frames)
-    _positive("--downscale", args.downscale)
+    at_least("--stride", args.stride)
+    at_least("--max-frames", args.max_frames)
+    at_least("--downscale", args.downscale)
     config = run_config(args)
     try:
         seq = open_dataset(args.path, format=args.format, stride=args.stride,
