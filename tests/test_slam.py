@@ -255,10 +255,31 @@ def test_new_gaussians_are_seeded_on_a_grid_about_grow_width_wide():
         grow_stride(640, grow_width=0)
 
 
-def test_mapping_thread_options_out_of_range_are_named():
-    for bad in ({"mapping_batch": 0}, {"mapping_threads": -1}):
-        with pytest.raises(ValueError, match=next(iter(bad))):
-            SLAM(SLAMConfig(features=False, mapping_thread=True, **bad), np.eye(3), 64, 48)
+def test_options_out_of_range_or_of_the_wrong_type_are_named(tmp_path, capsys):
+    from legslam.slam import _RANGES
+
+    # Counts the engine would take as unsigned, and fractions, are all covered.
+    assert {"final_iters", "map_iters_frame", "map_iters_keyframe", "keyframe_overlap"} <= set(_RANGES)
+    assert SLAMConfig(keyframe_translation=1, final_iters=np.int64(3)).final_iters == 3
+    for name, (low, high) in _RANGES.items():
+        below = low - 1 if isinstance(low, int) else -0.5
+        with pytest.raises(ValueError, match=f"{name} must be .*got {below}"):
+            SLAMConfig(**{name: below})
+        if high != float("inf"):
+            with pytest.raises(ValueError, match=f"{name} must be in"):
+                SLAMConfig(**{name: high + 0.5})
+    for bad in ({"keyframe_overlap": float("nan")}, {"final_iters": 2.5}, {"features": "no"},
+                {"map_iters_frame": True}, {"mapper": 3}, {"encoder": 7}, {"pca_path": 1}):
+        with pytest.raises(ValueError, match=f"^{next(iter(bad))} must be"):
+            SLAMConfig(**bad)
+    cfg = SLAMConfig(features=False)
+    cfg.mapping_batch = 0  # set after the config was made: the SLAM still refuses it
+    with pytest.raises(ValueError, match="mapping_batch must be at least 1, got 0"):
+        SLAM(cfg, np.eye(3), 64, 48)
+    # From a file, through the CLI: exit 2 before any frame is read, naming the option.
+    (tmp_path / "c.toml").write_text('final_iters = "lots"\n')
+    assert main(["run", str(tmp_path / "no-frames-here"), "--config", str(tmp_path / "c.toml")]) == 2
+    assert "final_iters must be an integer, got 'lots'" in capsys.readouterr().err
 
 
 def test_frames_follow_their_refined_keyframes(scene):

@@ -14,6 +14,7 @@ The Python side decides what to do; the engine (legslam._core) does the arithmet
 from __future__ import annotations
 
 import json
+import numbers
 import os
 import time
 from dataclasses import asdict, dataclass, field, fields
@@ -85,6 +86,29 @@ class SLAMConfig:
     mapper: dict = field(default_factory=dict)
     tracker: dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        self.check()
+
+    def check(self) -> None:
+        """Raises ValueError naming the first option of the wrong type or out of its range
+        (`mapper` and `tracker` options are checked by the engine and the tracker)."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            kind = dict if f.name in ("mapper", "tracker") else type(f.default)
+            if f.name == "pca_path":
+                ok = v is None or isinstance(v, (str, os.PathLike))
+            elif kind in (int, float):  # numpy scalars too, but not True/False
+                ok = isinstance(v, _NUMBER[kind]) and not isinstance(v, bool)
+            else:
+                ok = isinstance(v, kind)
+            if not ok:
+                raise ValueError(f"{f.name} must be {_KIND_NAMES.get(kind, 'a path')}, "
+                                 f"got {v!r}")
+            low, high = _RANGES.get(f.name, (None, None))
+            if low is not None and not low <= v <= high:  # also false for NaN
+                bound = f"at least {low}" if high == _INF else f"in [{low}, {high}]"
+                raise ValueError(f"{f.name} must be {bound}, got {v}")
+
     @classmethod
     def from_file(cls, path, **overrides) -> "SLAMConfig":
         """Reads a .toml, .json or .yaml file (only the keys given change a default)."""
@@ -119,6 +143,23 @@ class SLAMConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+_KIND_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
+               dict: "a table of options"}
+_NUMBER = {int: numbers.Integral, float: numbers.Real}
+_INF = float("inf")
+#: Each numeric option's range (inclusive).
+_RANGES = {
+    "track_width": (16, _INF), "map_width": (16, _INF), "grow_width": (16, _INF),
+    "keyframe_translation": (0.0, _INF), "keyframe_rotation": (0.0, _INF),
+    "keyframe_overlap": (0.0, 1.0), "keyframe_max_gap": (1, _INF),
+    "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
+    "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
+    "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0),
+    "encoder_size": (28, _INF), "encoder_threads": (0, _INF), "feature_dim": (1, _INF),
+    "pca_keyframes": (1, _INF),
+}
 
 
 @dataclass
@@ -159,9 +200,7 @@ class SLAM:
         if self.K.shape != (3, 3):
             raise ValueError(f"K must be 3x3, got shape {self.K.shape}")
         self.width, self.height = int(width), int(height)
-        for name in ("track_width", "map_width", "grow_width"):
-            if getattr(config, name) < 16:
-                raise ValueError(f"{name} must be at least 16, got {getattr(config, name)}")
+        config.check()  # again: a config's fields may have been set after it was made
         s = min(1.0, config.track_width / self.width)
         self.track_size = (max(1, round(self.width * s)), max(1, round(self.height * s)))
         self.K_track = _scaled_K(self.K, self.track_size[0] / self.width)
@@ -176,9 +215,6 @@ class SLAM:
         mapper_opts.setdefault("grow_level", level)
         mapper_opts.setdefault("levels", level + 3)
         mapper_opts.setdefault("grow_stride", max(1, round((self.width >> level) / config.grow_width)))
-        for name, least in (("mapping_batch", 1), ("mapping_threads", 0)):
-            if getattr(config, name) < least:
-                raise ValueError(f"{name} must be at least {least}, got {getattr(config, name)}")
         threads = (config.mapping_threads or os.cpu_count() or 2) if config.mapping_thread else None
         self.mapper = _core.MapperCore(mapper_opts, threads=threads)
         self.tracker = Tracker(threads=1 if config.mapping_thread else None, **self._tracker_options())
