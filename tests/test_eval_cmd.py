@@ -226,9 +226,18 @@ def test_a_map_without_features_has_no_semantic_metrics(plain_run, tmp_path, cap
     assert "has no language features" in capsys.readouterr().err
 
 
-def test_labels_of_the_wrong_size_are_a_clear_error(plain_run, small_synthetic, tmp_path, capsys):
+def test_unreadable_frames_are_left_out_by_name(plain_run, small_synthetic, tmp_path, capsys):
     scene = tmp_path / "scene"
     shutil.copytree(small_synthetic, scene)
     cv2.imwrite(str(scene / "labels" / "000000.png"), np.zeros((10, 10), np.uint8))
-    assert main(["eval", str(plain_run), "--sequence", str(scene)]) == 2
-    assert "labels are 10x10, expected 160x120" in capsys.readouterr().err
+    run = tmp_path / "run"
+    shutil.copytree(plain_run, run)
+    whole = _eval(run)
+    assert main(["eval", str(run), "--sequence", str(scene), "--every", "1"]) == 0
+    assert "frame 0 left out: " in capsys.readouterr().err
+    report = json.loads((run / "eval.json").read_text())
+    assert report["unreadable_frames"] == [0] and report["views"] == whole["frames"] - 1
+    for label in sorted((scene / "labels").glob("*.png")):
+        cv2.imwrite(str(label), np.zeros((10, 10), np.uint8))
+    assert main(["eval", str(run), "--sequence", str(scene)]) == 2
+    assert "none of the run's" in capsys.readouterr().err

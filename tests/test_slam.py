@@ -11,6 +11,7 @@ import pytest
 from legslam.cli import main
 from legslam.datasets import open as open_dataset
 from legslam.eval import ate, read_tum
+from legslam.map import GaussianMap
 from legslam.pipeline import run
 from legslam.slam import SLAM, SLAMConfig
 
@@ -345,3 +346,62 @@ def test_trained_exposures_follow_a_darker_half_of_the_sequence(scene, tmp_path)
     m, p = exposed["metrics"]["every_5"], plain["metrics"]["every_5"]
     assert m["psnr_exposed"] > m["psnr"] + 1.0, m
     assert m["psnr_exposed"] > p["psnr"] + 1.0, (m, p)
+
+
+def _corrupt_colour(scene, tmp_path, frames) -> Path:
+    """A copy of the scene whose colour images of `frames` are not images."""
+    import shutil
+
+    copy = tmp_path / "corrupt"
+    shutil.copytree(scene, copy)
+    colour = sorted((copy / "color").iterdir())
+    for i in frames:
+        colour[i].write_bytes(b"not an image")
+    return copy
+
+
+def test_an_unreadable_frame_is_skipped_by_name_and_the_run_goes_on(mapped, scene, tmp_path, capsys):
+    copy = _corrupt_colour(scene, tmp_path, [7])
+    quick = tmp_path / "quick.toml"
+    quick.write_text("features = false\nfinal_iters = 30\n")
+    out = tmp_path / "run"
+    assert main(["run", str(copy), "--quiet", "--config", str(quick), "--out", str(out)]) == 0
+    printed = capsys.readouterr()
+    assert "warning: frame 7 skipped: cannot decode image" in printed.err
+    assert "(1 unreadable)" in printed.out
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["unreadable_frames"] == [7] and metrics["lost_frames"] >= 1
+    stamps, poses = read_tum(out / "trajectory.txt")
+    seq = open_dataset(scene)
+    assert len(poses) == len(seq) and np.allclose(stamps, [seq.timestamp(i) for i in range(len(seq))])
+    # One frame fewer to track and map from: about as good as the whole run.
+    assert metrics["ate_rmse_m"] < 2 * mapped["metrics"]["ate_rmse_m"] + 0.01
+    assert psnr_of({"metrics": metrics}) > psnr_of(mapped) - 2
+    assert main(["eval", str(out)]) == 0
+    assert json.loads((out / "eval.json").read_text())["unreadable_frames"] == [7]
+
+
+def test_a_run_that_stops_keeps_the_frames_done(scene, tmp_path, capsys, monkeypatch):
+    import legslam.datasets.base as base
+
+    # Too many unreadable frames in a row: a clear error, and the frames before it kept.
+    monkeypatch.setattr(base, "MAX_UNREADABLE_IN_A_ROW", 3)
+    out = tmp_path / "broken"
+    copy = _corrupt_colour(scene, tmp_path, [5, 6, 7])
+    assert main(["run", str(copy), "--no-features", "--quiet", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "3 frames in a row cannot be read (frames 5-7)" in err and "stopped after 7 frames" in err
+    assert len(read_tum(out / "trajectory.txt")[1]) == 7
+    assert len(GaussianMap.load(out / "map.ply")) > 0
+
+    # Interrupted (Ctrl-C) once frame 4 is tracked: frames 0-4 are kept.
+    class Interrupt:
+        def on_frame(self, i, frame, step, slam):
+            if i == 4:
+                raise KeyboardInterrupt
+
+    out = tmp_path / "interrupted"
+    with pytest.raises(KeyboardInterrupt):
+        run(open_dataset(scene), out, SLAMConfig(features=False), progress=False, viewer=Interrupt())
+    assert len(read_tum(out / "trajectory.txt")[1]) == 5
+    assert len(GaussianMap.load(out / "map.ply")) > 0

@@ -245,55 +245,43 @@ def test_odometry_cli_is_registered():
 
 
 @needs_data
-def test_odometry_cli_end_to_end(tmp_path):
-    pytest.importorskip("legslam.datasets", reason="the dataset loaders are not merged yet")
+def test_odometry_cli_end_to_end(tmp_path, capsys):
     from legslam.cli import main
+    from legslam.datasets import open as open_dataset
 
-    out = tmp_path / "traj.txt"
-    assert main(["odometry", DATA, "--out", str(out), "--max-frames", "15", "--quiet"]) == 0
-    rows = np.loadtxt(out)
-    assert rows.shape == (15, 8) and np.all(np.isfinite(rows))
-
-
-@needs_data
-def test_odometry_cli_with_a_stand_in_loader(tmp_path, monkeypatch, capsys):
-    """Runs `legslam odometry` against the loader interface (open(path, format, stride,
-    max_frames, downscale) -> sequence of frames with rgb/depth/K/pose/timestamp/index),
-    with a stand-in for legslam.datasets so the command is tested before the loaders land."""
-    import sys
-    import types
-
-    from legslam.cli import main
-
-    class Frame:
-        def __init__(self, i):
-            self.rgb, self.depth, self.K, self.pose = load(i)
-            self.timestamp, self.index = i / 30.0, i
-
-    class Seq:
-        def __init__(self, n, stride):
-            self.ids = list(range(0, n * stride, stride))
-
-        def __len__(self):
-            return len(self.ids)
-
-        def __getitem__(self, i):
-            return Frame(self.ids[i])
-
-    def fake_open(path, format="auto", stride=1, max_frames=None, downscale=1):
-        if not os.path.isdir(path):
-            raise FileNotFoundError(path)
-        return Seq(max_frames or 10, stride)
-
-    monkeypatch.setitem(sys.modules, "legslam.datasets", types.SimpleNamespace(open=fake_open))
     out = tmp_path / "traj.txt"
     assert main(["odometry", DATA, "--out", str(out), "--max-frames", "12", "--stride", "2"]) == 0
     rows = np.loadtxt(out)
     assert rows.shape == (12, 8) and np.all(np.isfinite(rows))
     np.testing.assert_allclose(np.linalg.norm(rows[:, 4:], axis=1), 1.0, atol=1e-5)
     # The first pose is the first frame's ground truth (the default start).
-    np.testing.assert_allclose(rows[0, 1:4], load(0)[3][:3, 3], atol=1e-5)
+    np.testing.assert_allclose(rows[0, 1:4], open_dataset(DATA)[0].pose[:3, 3], atol=1e-5)
     captured = capsys.readouterr()
     assert "frame 12/12" in captured.err and "lost 0" in captured.err
     assert main(["odometry", "/nonexistent", "--out", str(out)]) == 2
     assert "cannot read" in capsys.readouterr().err
+
+
+def test_odometry_skips_unreadable_frames_and_keeps_the_trajectory_when_it_stops(
+        tmp_path, capsys, monkeypatch):
+    import legslam.datasets.base as base
+    from legslam.cli import main
+    from legslam.datasets import synthetic
+
+    scene = synthetic.generate(tmp_path / "scene", n_frames=10, width=160, height=120, seed=2)
+    colour = sorted((scene / "color").iterdir())
+    colour[4].write_bytes(b"not an image")
+    out = tmp_path / "traj.txt"
+    odometry = ["odometry", str(scene), "--out", str(out), "--quiet", "--finest-level", "0", "--levels", "3"]
+    assert main(odometry) == 0
+    captured = capsys.readouterr()
+    assert "warning: frame 4 skipped: cannot decode image" in captured.err
+    assert "1 unreadable" in captured.out
+    stamps = np.loadtxt(out)[:, 0]
+    assert len(stamps) == 9 and not np.isclose(stamps, 4 / 30).any()
+
+    monkeypatch.setattr(base, "MAX_UNREADABLE_IN_A_ROW", 2)
+    colour[5].write_bytes(b"not an image")
+    assert main(odometry) == 2
+    assert "2 frames in a row cannot be read (frames 4-5)" in capsys.readouterr().err
+    assert len(np.loadtxt(out)) == 4

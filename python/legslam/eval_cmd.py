@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -89,14 +90,25 @@ def run(args) -> int:
             raise UserError(str(e)) from e
 
     report: dict = {"frames": len(poses)}
-    gt = [frame(i).pose for i in range(len(poses))]
-    if all(g is not None for g in gt):
-        a = ate(np.stack(gt), poses)
-        r = rpe(np.stack(gt), poses)
+    gt, unreadable = {}, []
+    for i in range(len(poses)):
+        try:
+            gt[i] = seq[i].pose
+        except DatasetError as e:  # as the run did: left out, with a warning
+            print(f"warning: frame {i} left out: {e}", file=sys.stderr)
+            unreadable.append(i)
+    if unreadable:
+        report["unreadable_frames"] = unreadable
+    if not gt:
+        raise UserError(f"none of the run's {len(poses)} frames of {seq_path} can be read")
+    if len(gt) >= 3 and all(g is not None for g in gt.values()):
+        a = ate(np.stack(list(gt.values())), poses[list(gt)])
+        r = rpe(np.stack(list(gt.values())), poses[list(gt)])
         report.update(ate_rmse_cm=100 * a["rmse"], ate_mean_cm=100 * a["mean"],
                       rpe_trans_rmse_cm=100 * r["trans"]["rmse"], rpe_rot_rmse_deg=r["rot"]["rmse"])
     m = GaussianMap.load(run_dir / "map.ply")
-    views = list(range(0, len(poses), args.every))
+    # Every N-th readable frame (the first readable one when none of those is).
+    views = [i for i in range(0, len(poses), args.every) if i in gt] or [next(iter(gt))]
     sem = _semantic_score(args, seq, run_dir, m, views, lambda i: frame(i).labels,
                           lambda i: m.render(poses[i], K, w, h, features=True).features)
     vals = {"psnr": [], "ssim": [], "depth_l1_cm": []}

@@ -98,7 +98,10 @@ def run(args: argparse.Namespace) -> int:
     if args.levels is not None:
         config["levels"] = args.levels
         config["iterations"] = [4] * args.levels
-    first = seq[0]
+    try:
+        first = seq[0]
+    except datasets.DatasetError as e:
+        raise UserError(f"cannot read the first frame: {e}")
     start = first.pose if (first.pose is not None and not args.identity_start) else np.eye(4)
     try:
         odo = Odometry(initial_pose=start, motion_prior=not args.no_motion_prior, **config)
@@ -110,32 +113,39 @@ def run(args: argparse.Namespace) -> int:
     progress = not args.quiet
     tty = sys.stderr.isatty()
     t_start = time.perf_counter()
-    for i in range(n):
-        f = first if i == 0 else seq[i]
-        t0 = time.perf_counter()
-        try:
-            step = odo.step(f.rgb, f.depth, f.K)
-        except ValueError as e:
-            raise UserError(f"frame {i}: {e}")
-        dt = (time.perf_counter() - t0) * 1e3
-        if i > 0:
-            times.append(dt)
-        if step.lost:
-            lost += 1
-        stamps.append(f.timestamp)
-        poses.append(step.pose)
-        gt.append(f.pose)
-        if progress and (tty or (i + 1) % 100 == 0 or i + 1 == n):
-            med = statistics.median(times) if times else dt
-            msg = f"frame {i + 1}/{n}  {dt:6.1f} ms  (median {med:.1f} ms/frame)  lost {lost}"
-            print(("\r" + msg) if tty else msg, end="" if tty and i + 1 < n else "\n",
-                  file=sys.stderr, flush=True)
+    skipped = 0
+    try:
+        for i, f in datasets.each_readable(seq):
+            if f is None:  # unreadable: left out of the trajectory, the next frame tracks on
+                skipped += 1
+                continue
+            t0 = time.perf_counter()
+            try:
+                step = odo.step(f.rgb, f.depth, f.K)
+            except ValueError as e:
+                raise UserError(f"frame {i}: {e}")
+            dt = (time.perf_counter() - t0) * 1e3
+            if i > 0:
+                times.append(dt)
+            if step.lost:
+                lost += 1
+            stamps.append(f.timestamp)
+            poses.append(step.pose)
+            gt.append(f.pose)
+            if progress and (tty or (i + 1) % 100 == 0 or i + 1 == n):
+                med = statistics.median(times) if times else dt
+                msg = f"frame {i + 1}/{n}  {dt:6.1f} ms  (median {med:.1f} ms/frame)  lost {lost}"
+                print(("\r" + msg) if tty else msg, end="" if tty and i + 1 < n else "\n",
+                      file=sys.stderr, flush=True)
+    except datasets.DatasetError as e:  # too many unreadable in a row: keep what is done
+        _write_tum(args.out, stamps, poses)
+        raise UserError(f"{e}; the trajectory of the frames before is in {args.out}")
 
     _write_tum(args.out, stamps, poses)
     total = time.perf_counter() - t_start
     med = statistics.median(times) if times else float("nan")
     print(f"{n} frames in {total:.1f} s, median {med:.1f} ms/frame (tracking only), "
-          f"{lost} lost; trajectory written to {args.out}")
+          f"{lost} lost, {skipped} unreadable; trajectory written to {args.out}")
     if all(p is not None for p in gt) and n > 2:
         try:
             from legslam.eval import ate_rmse

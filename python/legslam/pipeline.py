@@ -16,6 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .datasets import each_readable
 from .slam import SLAM, SLAMConfig
 
 __all__ = ["run", "evaluate", "feature_rgb", "feature_basis"]
@@ -73,21 +74,23 @@ def _to_u8(img: np.ndarray) -> np.ndarray:
 
 
 def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
-             n_renders: int = 4) -> dict:
+             n_renders: int = 4, skip=()) -> dict:
     """Renders the final map at the estimated pose of every `every`-th frame and of every
-    keyframe; PSNR, SSIM and depth L1 against the input, and ATE when ground truth exists."""
+    keyframe; PSNR, SSIM and depth L1 against the input, and ATE when ground truth exists.
+    Frames in `skip` (unreadable) are left out of every figure."""
     from .eval import ate, depth_l1_cm, psnr, ssim
 
     n = len(slam.poses)
     out: dict = {"frames": n, "keyframes": len(slam.keyframe_frames),
                  "keyframe_frames": list(slam.keyframe_frames),
                  "lost_frames": int(sum(s == "lost" for s in slam.states))}
-    gt = [seq[i].pose for i in range(n)] if n else []
-    if n >= 3 and all(p is not None for p in gt):
-        stats = ate(np.stack(gt), np.stack(slam.poses))
+    readable = [i for i in range(n) if i not in skip]
+    gt = [seq[i].pose for i in readable]
+    if len(readable) >= 3 and all(p is not None for p in gt):
+        stats = ate(np.stack(gt), np.stack([slam.poses[i] for i in readable]))
         out["ate_rmse_m"] = stats["rmse"]
         out["ate_mean_m"] = stats["mean"]
-    picked = sorted(set(range(0, n, every)))
+    picked = [i for i in range(0, n, every) if i not in skip]
     show = set(picked[:: max(1, len(picked) // n_renders)][:n_renders])
     # With trained exposures, also PSNR under the exposure SLAM estimated for each frame (its
     # keyframe's): the map's colour is the first keyframe's exposure, the frames' varies.
@@ -142,6 +145,30 @@ def _timing_table(slam: SLAM, wall_s: float, live_s: float, viewer_ms: list[floa
     return table
 
 
+def _save_trajectory_and_map(slam: SLAM, out: Path, stamps: list) -> None:
+    from .eval import write_tum
+
+    # A run stopped inside a frame has its stamp but not its pose.
+    write_tum(out / "trajectory.txt", np.array(stamps[:len(slam.poses)]), np.stack(slam.poses))
+    slam.gaussian_map().save(out / "map.ply")
+    if slam.pca is not None:
+        slam.pca.save(out / "pca.npz")
+
+
+def _save_partial(slam: SLAM, out: Path, stamps: list) -> None:
+    """Writes the trajectory and map of the frames done before a run stopped (no final
+    iterations); says so on stderr, or why it could not."""
+    try:
+        if not slam.poses:
+            return
+        slam.finish(train=False)
+        _save_trajectory_and_map(slam, out, stamps)
+        print(f"stopped after {len(slam.poses)} frames: their trajectory.txt and map.ply are in "
+              f"{out}/", file=sys.stderr)
+    except Exception as e:  # the error that stopped the run is the one to report
+        print(f"could not save the frames done so far: {e}", file=sys.stderr)
+
+
 def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
         evaluate_every: int = 5, encoder=None, viewer=None) -> dict:
     """Runs SLAM over a sequence (from legslam.datasets.open) and writes the outputs.
@@ -149,8 +176,6 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     `viewer` (e.g. legslam.viewer.RerunViewer) sees every step, `on_frame(index, frame, step,
     slam)`, and the finished map, `on_finish(slam)`; its time is part of the wall time and is
     reported as its own stage."""
-    from .eval import write_tum
-
     config = config or SLAMConfig()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -168,33 +193,40 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     bar = Progress(len(seq), progress)
     t0 = time.perf_counter()
     stamps, viewer_ms = [], []
-    for i in range(len(seq)):
-        f = first if i == 0 else seq[i]
-        stamps.append(f.timestamp)
-        r = slam.step(f.rgb, f.depth)
-        if viewer is not None:
-            t1 = time.perf_counter()
-            viewer.on_frame(i, f, r, slam)
-            viewer_ms.append(1e3 * (time.perf_counter() - t1))
-        bar.update(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
-                      f"gaussians {slam.num_gaussians}")
-    live = time.perf_counter() - t0
-    slam.finish()
+    unreadable: set[int] = set()
+    try:
+        for i, f in each_readable(seq):
+            if f is None:  # lost: the motion model's pose
+                unreadable.add(i)
+                stamps.append(seq.timestamp(i))
+                slam.skip()
+                continue
+            stamps.append(f.timestamp)
+            r = slam.step(f.rgb, f.depth)
+            if viewer is not None:
+                t1 = time.perf_counter()
+                viewer.on_frame(i, f, r, slam)
+                viewer_ms.append(1e3 * (time.perf_counter() - t1))
+            bar.update(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
+                          f"gaussians {slam.num_gaussians}")
+        live = time.perf_counter() - t0
+        slam.finish()
+    except BaseException:  # interrupted, or too many unreadable frames: keep the work done
+        _save_partial(slam, out, stamps)
+        raise
     if viewer is not None:
         t1 = time.perf_counter()
         viewer.on_finish(slam)
         viewer_ms.append(1e3 * (time.perf_counter() - t1))
     wall = time.perf_counter() - t0
 
-    write_tum(out / "trajectory.txt", np.array(stamps), np.stack(slam.poses))
-    slam.gaussian_map().save(out / "map.ply")
-    if slam.pca is not None:
-        slam.pca.save(out / "pca.npz")
+    _save_trajectory_and_map(slam, out, stamps)
     timings = _timing_table(slam, wall, live, viewer_ms)
     (out / "timings.json").write_text(json.dumps(timings, indent=2))
     renders = out / "renders"
     renders.mkdir(exist_ok=True)
-    metrics = evaluate(slam, seq, every=evaluate_every, renders_dir=renders)
+    metrics = evaluate(slam, seq, every=evaluate_every, renders_dir=renders, skip=unreadable)
+    metrics["unreadable_frames"] = sorted(unreadable)
     metrics["gaussians"] = slam.mapper.num_gaussians
     metrics["fps"] = timings["fps"]
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -68,16 +68,19 @@ def run_config(args):
 
 def run_sequence(seq, name: str, args, config) -> int:
     from .cli import UserError
+    from .datasets import DatasetError
     from .pipeline import run
 
     out = Path(args.out or Path("legslam-out") / name)
     viewer = _viewer(args)
     try:
         result = run(seq, out, config, progress=not args.quiet, viewer=viewer)
-    except FileNotFoundError as e:  # e.g. the encoder model is not in the cache
+    # The encoder model not in the cache, the first frame or too many in a row unreadable.
+    except (FileNotFoundError, DatasetError) as e:
         raise UserError(str(e)) from e
     m, t = result["metrics"], result["timings"]
-    print(f"frames {m['frames']}  keyframes {m['keyframes']}  lost {m['lost_frames']}  "
+    unreadable = f" ({len(m['unreadable_frames'])} unreadable)" if m["unreadable_frames"] else ""
+    print(f"frames {m['frames']}  keyframes {m['keyframes']}  lost {m['lost_frames']}{unreadable}  "
           f"gaussians {m['gaussians']}  {t['fps']:.2f} fps ({t['fps_live']:.2f} while frames came in)")
     if "ate_rmse_m" in m:
         print(f"ATE RMSE {100 * m['ate_rmse_m']:.2f} cm")

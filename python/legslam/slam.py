@@ -300,12 +300,23 @@ class SLAM:
 
         if state != "lost":
             self._last_tracked = (pose, rgb_t, depth_t)
-        kf_pose = self._last_kf[0]
-        self._anchors.append((len(self.keyframe_frames) - 1, np.linalg.inv(kf_pose) @ pose))
-        self.poses.append(pose)
-        self.states.append(state)
+        self._record(pose, state)
         self.timings["frame"].append(1e3 * (time.perf_counter() - t_frame))
         return StepResult(i, pose, state, keyframe, reason)
+
+    def skip(self) -> StepResult:
+        """Records a frame that could not be read as lost: the motion model's pose, no mapping."""
+        if not self.poses:
+            raise ValueError("the first frame cannot be skipped: it places the map")
+        pose = self._predict()
+        self._record(pose, "lost")
+        return StepResult(len(self.poses) - 1, pose, "lost", False, "unreadable")
+
+    def _record(self, pose: np.ndarray, state: str) -> None:
+        """A frame's pose and state, anchored to the last keyframe (see `_follow_keyframes`)."""
+        self._anchors.append((len(self.keyframe_frames) - 1, np.linalg.inv(self._last_kf[0]) @ pose))
+        self.poses.append(pose)
+        self.states.append(state)
 
     @property
     def _mapping(self):
@@ -398,9 +409,9 @@ class SLAM:
 
     # --- end of sequence ---------------------------------------------------------------------
 
-    def finish(self) -> None:
+    def finish(self, train: bool = True) -> None:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
-        mapping iterations."""
+        mapping iterations (unless `train` is false: a run cut short keeps the map it has)."""
         if self._thread is not None:
             self._thread.stop()
             self.mapping_stats.extend(self._thread.stats)
@@ -408,7 +419,7 @@ class SLAM:
             self._thread = None
         if self._features is not None:
             self._features.drain()
-        if self.config.final_iters > 0:
+        if train and self.config.final_iters > 0:
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
             self.mapping_stats.append(self.mapper.train(self.config.final_iters,
                                                         window=self.mapper.num_keyframes))

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .base import IGNORE_LABEL, DatasetError, DatasetNotFoundError, Frame, Sequence
+from .base import IGNORE_LABEL, DatasetError, DatasetNotFoundError, Frame, Sequence, each_readable
 from .detect import FORMATS, detect
 
-__all__ = ["open", "detect", "Frame", "Sequence", "DatasetError", "DatasetNotFoundError",
-           "IGNORE_LABEL", "FORMATS"]
+__all__ = ["open", "detect", "each_readable", "Frame", "Sequence", "DatasetError",
+           "DatasetNotFoundError", "IGNORE_LABEL", "FORMATS"]
 
 
 def open(path, format: str = "auto", *, stride: int = 1, frames=None, max_frames=None,

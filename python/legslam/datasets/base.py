@@ -19,6 +19,10 @@ IGNORE_LABEL = -1
 # Frame time for formats whose files carry no timestamps: the 30 Hz of the sensors they come from.
 NOMINAL_FPS = 30.0
 
+# Unreadable frames in a row after which `each_readable` gives up (a second at 30 Hz): a
+# corrupt file is skipped, a sequence whose files are broken is not tracked blind.
+MAX_UNREADABLE_IN_A_ROW = 30
+
 
 class DatasetError(ValueError):
     """Input that cannot be read as the dataset it claims to be; the message says what and where."""
@@ -186,6 +190,10 @@ class Sequence:
         for k in range(len(self)):
             yield self[k]
 
+    def timestamp(self, k: int) -> float:
+        """The k-th frame's timestamp (seconds), read without its images."""
+        return float(self._timestamp(self._indices[k]))
+
     def __getitem__(self, k: int) -> Frame:
         if not isinstance(k, (int, np.integer)):
             raise TypeError(f"sequence indices must be integers, not {type(k).__name__}")
@@ -201,7 +209,7 @@ class Sequence:
             raise DatasetError(f"{where}: labels are {labels.shape[1]}x{labels.shape[0]}, expected {w}x{h}")
         rgb, depth, labels = self._transform(rgb, depth, labels)
         return Frame(rgb=rgb, depth=depth, K=self.K.copy(), pose=self._pose(i),
-                     timestamp=float(self._timestamp(i)), index=int(i), labels=labels)
+                     timestamp=self.timestamp(k), index=int(i), labels=labels)
 
     def gt_trajectory(self) -> tuple:
         """(timestamps (M,), c2w poses (M,4,4)) of the selected frames that have a ground-truth
@@ -263,3 +271,25 @@ def natural_key(path: Path):
 
 def paths_sorted(paths: SequenceT[Path]) -> list:
     return sorted(paths, key=natural_key)
+
+
+def each_readable(seq) -> Iterator[tuple[int, Optional[Frame]]]:
+    """(k, frame) for every frame of `seq` in order; frame is None where it cannot be read,
+    with a warning on stderr that says why. Raises DatasetError once MAX_UNREADABLE_IN_A_ROW
+    frames in a row could not be read."""
+    import sys
+
+    in_a_row = 0
+    for k in range(len(seq)):
+        try:
+            frame = seq[k]
+        except DatasetError as e:
+            in_a_row += 1
+            if in_a_row >= MAX_UNREADABLE_IN_A_ROW:
+                raise DatasetError(f"{in_a_row} frames in a row cannot be read (frames "
+                                   f"{k - in_a_row + 1}-{k}), the last: {e}") from e
+            print(f"warning: frame {k} skipped: {e}", file=sys.stderr)
+            yield k, None
+            continue
+        in_a_row = 0
+        yield k, frame
