@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from legslam.tracking import DEFAULT_CONFIG, Odometry, Tracker
+from legslam.tracking import DEFAULT_CONFIG, Odometry, Tracker, fitting_levels
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DATA = os.path.join(ROOT, "..", "shared", "data", "7scenes_tsdf_fusion", "data")
@@ -272,7 +272,7 @@ def test_odometry_skips_unreadable_frames_and_keeps_the_trajectory_when_it_stops
     colour = sorted((scene / "color").iterdir())
     colour[4].write_bytes(b"not an image")
     out = tmp_path / "traj.txt"
-    odometry = ["odometry", str(scene), "--out", str(out), "--quiet", "--finest-level", "0", "--levels", "3"]
+    odometry = ["odometry", str(scene), "--out", str(out), "--quiet"]
     assert main(odometry) == 0
     captured = capsys.readouterr()
     assert "warning: frame 4 skipped: cannot decode image" in captured.err
@@ -285,3 +285,15 @@ def test_odometry_skips_unreadable_frames_and_keeps_the_trajectory_when_it_stops
     assert main(odometry) == 2
     assert "2 frames in a row cannot be read (frames 4-5)" in capsys.readouterr().err
     assert len(np.loadtxt(out)) == 4
+
+
+def test_fitting_levels_keep_the_coarsest_level_at_least_8_pixels():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        w, h, finest = int(rng.integers(8, 2000)), int(rng.integers(8, 2000)), int(rng.integers(0, 4))
+        n = fitting_levels(w, h, finest)
+        smallest = min(w, h) >> finest
+        assert 1 <= n <= DEFAULT_CONFIG["levels"]
+        assert n == 1 or smallest >> (n - 1) >= 8, (w, h, finest, n)
+        # No more levels would fit (or the default's number is reached).
+        assert n == DEFAULT_CONFIG["levels"] or smallest >> n < 8, (w, h, finest, n)

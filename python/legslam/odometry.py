@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         from legslam import datasets
     except ImportError as e:
         raise UserError(f"the dataset loaders (legslam.datasets) are not available: {e}")
-    from legslam.tracking import Odometry
+    from legslam.tracking import DEFAULT_CONFIG, Odometry, fitting_levels
 
     at_least("--stride", args.stride)
     at_least("--downscale", args.downscale)
@@ -92,16 +92,22 @@ def run(args: argparse.Namespace) -> int:
     if n == 0:
         raise UserError(f"no frames in {args.path}")
 
-    config = {}
-    if args.finest_level is not None:
-        config["finest_level"] = args.finest_level
-    if args.levels is not None:
-        config["levels"] = args.levels
-        config["iterations"] = [4] * args.levels
     try:
         first = seq[0]
     except datasets.DatasetError as e:
         raise UserError(f"cannot read the first frame: {e}")
+    # Unless told: the finest level at most 160 pixels wide as the default's on 640x480, and as
+    # many levels as the image has room for.
+    h, w = first.depth.shape
+    finest = args.finest_level
+    if finest is None:
+        finest = min(DEFAULT_CONFIG["finest_level"], max(0, int(np.log2(max(w, 160) / 160))))
+    config = {"finest_level": finest}
+    if args.levels is not None:
+        config["levels"] = args.levels
+        config["iterations"] = [4] * args.levels
+    else:
+        config["levels"] = fitting_levels(w, h, finest)
     start = first.pose if (first.pose is not None and not args.identity_start) else np.eye(4)
     try:
         odo = Odometry(initial_pose=start, motion_prior=not args.no_motion_prior, **config)

@@ -242,13 +242,11 @@ class SLAM:
     def _tracker_options(self) -> dict:
         """The tracker sees images already at `track_width`: its finest level is theirs, and
         it uses only as many pyramid levels as keep the coarsest at least 8 pixels."""
-        from .tracking import DEFAULT_CONFIG
+        from .tracking import fitting_levels
 
         opts = {"finest_level": 0, **self.config.tracker}
         if "levels" not in self.config.tracker:
-            smallest = min(self.track_size) >> opts["finest_level"]
-            fit = max(1, int(np.log2(max(smallest, 8) / 8)) + 1)
-            opts["levels"] = min(DEFAULT_CONFIG["levels"], fit)
+            opts["levels"] = fitting_levels(*self.track_size, opts["finest_level"])
         return opts
 
     # --- per frame ---------------------------------------------------------------------------

@@ -26,10 +26,17 @@ import numpy as np
 
 from legslam import _core
 
-__all__ = ["DEFAULT_CONFIG", "TrackResult", "Tracker", "Reference", "Odometry", "OdometryStep"]
+__all__ = ["DEFAULT_CONFIG", "fitting_levels", "TrackResult", "Tracker", "Reference", "Odometry", "OdometryStep"]
 
 #: The engine's default tracker options (`Tracker(**overrides)` changes any of them).
 DEFAULT_CONFIG: dict[str, Any] = dict(_core.tracker_default_config())
+
+
+def fitting_levels(width: int, height: int, finest_level: int) -> int:
+    """The default number of pyramid levels, fewer where the coarsest would be under 8 pixels
+    (the engine refuses that) for a width x height image tracked from `finest_level`."""
+    smallest = min(width, height) >> finest_level
+    return min(DEFAULT_CONFIG["levels"], max(1, int(np.log2(max(smallest, 8) / 8)) + 1))
 
 
 @dataclass(frozen=True)
