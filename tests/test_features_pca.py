@@ -82,3 +82,15 @@ def test_bad_input_is_rejected(tmp_path):
     np.savez(tmp_path / "other.npz", a=1)
     with pytest.raises(ValueError, match="not a legslam PCA"):
         PCA.load(tmp_path / "other.npz")
+
+
+def test_a_file_that_is_not_a_saved_pca_is_named(tmp_path):
+    PCA(3).fit(_data(d=8)).save(tmp_path / "pca.npz")
+    whole = (tmp_path / "pca.npz").read_bytes()
+    for name, content in (("text.npz", b"garbage\n"), ("cut.npz", whole[: len(whole) // 2])):
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(ValueError, match=f"{name} is (not a legslam|a damaged) PCA file"):
+            PCA.load(tmp_path / name)
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    with pytest.raises(ValueError, match="one array, not an .npz archive"):
+        PCA.load(tmp_path / "one.npy")

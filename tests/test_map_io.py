@@ -66,3 +66,17 @@ def test_load_errors_name_the_problem(tmp_path):
         b"property float y\nproperty float z\nend_header\n" + np.zeros(3, "<f4").tobytes())
     with pytest.raises(ValueError, match="not a Gaussian-splat PLY"):
         GaussianMap.load(tmp_path / "mesh.ply")
+
+
+def test_a_damaged_map_file_is_named(tmp_path):
+    path = random_map(n=20).save(tmp_path / "map.ply")
+    whole = path.read_bytes()
+    path.write_bytes(whole[:-7])
+    with pytest.raises(ValueError, match=r"map.ply is cut short: its 20 Gaussians need \d+ bytes"):
+        GaussianMap.load(path)
+    path.write_bytes(whole[:whole.index(b"end_header")])
+    with pytest.raises(ValueError, match="no end_header"):
+        GaussianMap.load(path)
+    path.write_bytes(whole.replace(b"element vertex 20", b"element vertex lots"))
+    with pytest.raises(ValueError, match="bad PLY header line 'element vertex lots'"):
+        GaussianMap.load(path)

@@ -405,3 +405,16 @@ def test_a_run_that_stops_keeps_the_frames_done(scene, tmp_path, capsys, monkeyp
         run(open_dataset(scene), out, SLAMConfig(features=False), progress=False, viewer=Interrupt())
     assert len(read_tum(out / "trajectory.txt")[1]) == 5
     assert len(GaussianMap.load(out / "map.ply")) > 0
+
+
+def test_commands_name_a_damaged_map(mapped, tmp_path, capsys):
+    import shutil
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(mapped["out"], run_dir)
+    ply = run_dir / "map.ply"
+    ply.write_bytes(ply.read_bytes()[:-100])
+    for command in (["render", str(run_dir), "--out", str(tmp_path / "views")], ["eval", str(run_dir)],
+                    ["query", str(run_dir), "chair"]):
+        assert main(command) == 2, command
+        assert "map.ply is cut short" in capsys.readouterr().err, command

@@ -31,6 +31,16 @@ def at_least(name: str, v, least: int = 1) -> None:
         raise UserError(f"{name} must be at least {least}, got {v}")
 
 
+def load_map(path):
+    """The GaussianMap at `path`; a missing or unreadable file is a UserError naming it."""
+    from .map import GaussianMap
+
+    try:
+        return GaussianMap.load(path)
+    except (OSError, ValueError) as e:
+        raise UserError(str(e)) from e
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="legslam",

@@ -56,10 +56,9 @@ def _open_selection(path, fmt: str, selection: dict):
 
 
 def run(args) -> int:
-    from .cli import UserError, at_least
+    from .cli import UserError, at_least, load_map
     from .datasets import DatasetError
     from .eval import ate, depth_l1_cm, psnr, read_tum, rpe, ssim
-    from .map import GaussianMap
 
     run_dir = Path(args.run)
     for name in ("trajectory.txt", "map.ply", "camera.json"):
@@ -106,7 +105,7 @@ def run(args) -> int:
         r = rpe(np.stack(list(gt.values())), poses[list(gt)])
         report.update(ate_rmse_cm=100 * a["rmse"], ate_mean_cm=100 * a["mean"],
                       rpe_trans_rmse_cm=100 * r["trans"]["rmse"], rpe_rot_rmse_deg=r["rot"]["rmse"])
-    m = GaussianMap.load(run_dir / "map.ply")
+    m = load_map(run_dir / "map.ply")
     # Every N-th readable frame (the first readable one when none of those is).
     views = [i for i in range(0, len(poses), args.every) if i in gt] or [next(iter(gt))]
     sem = _semantic_score(args, seq, run_dir, m, views, lambda i: frame(i).labels,

@@ -101,6 +101,9 @@ class GaussianMap:
                 words = line.decode("ascii", "replace").split()
                 if not words:
                     continue
+                short = words[0] in ("format", "element", "property") and len(words) < 3
+                if short or (words[0] == "element" and not words[2].isdigit()):
+                    raise ValueError(f"{path}: bad PLY header line {' '.join(words)!r}")
                 if words[0] == "format":
                     fmt = words[1]
                 elif words[0] == "element":
@@ -115,7 +118,11 @@ class GaussianMap:
                     break
             if fmt != "binary_little_endian" or n is None:
                 raise ValueError(f"{path}: expected a binary little-endian vertex PLY")
-            data = np.frombuffer(f.read(), dtype=[(name, "<f4") for name in names], count=n)
+            body, need = f.read(), n * 4 * len(names)
+            if len(body) < need:
+                raise ValueError(f"{path} is cut short: its {n} Gaussians need {need} bytes after "
+                                 f"the header, it has {len(body)}")
+            data = np.frombuffer(body, dtype=[(name, "<f4") for name in names], count=n)
         missing = [k for k in ("x", "y", "z", "f_dc_0", "opacity", "scale_0", "rot_0") if k not in names]
         if missing:
             raise ValueError(f"{path}: not a Gaussian-splat PLY (missing {', '.join(missing)})")

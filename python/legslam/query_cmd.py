@@ -30,15 +30,14 @@ class RunFolder:
     """What a run folder holds, with errors that say what is missing."""
 
     def __init__(self, path: Path):
-        from .cli import UserError
+        from .cli import UserError, load_map
         from .eval import read_tum
-        from .map import GaussianMap
 
         self.path = path
         for name in ("map.ply", "trajectory.txt", "camera.json"):
             if not (path / name).is_file():
                 raise UserError(f"{path} has no {name}: give a `legslam run` output folder")
-        self.map = GaussianMap.load(path / "map.ply")
+        self.map = load_map(path / "map.ply")
         if self.map.num_features == 0:
             raise UserError(f"{path / 'map.ply'} has no language features (run without --no-features)")
         cam = json.loads((path / "camera.json").read_text())

@@ -25,9 +25,8 @@ def run(args) -> int:
 
     import cv2
 
-    from .cli import UserError, at_least
+    from .cli import UserError, at_least, load_map
     from .eval import TrajectoryError, read_tum
-    from .map import GaussianMap
     from .pipeline import feature_basis, feature_rgb
 
     src = Path(args.run)
@@ -54,7 +53,7 @@ def run(args) -> int:
         _, poses = read_tum(traj)
     except (OSError, TrajectoryError) as e:
         raise UserError(f"cannot read the trajectory {traj}: {e}") from e
-    m = GaussianMap.load(map_path)
+    m = load_map(map_path)
     out = Path(args.out) if args.out else run_dir / "views"
     out.mkdir(parents=True, exist_ok=True)
     features = m.num_features > 0 and not args.no_features

@@ -4,6 +4,7 @@ shared by `legslam query` and `legslam eval`."""
 from __future__ import annotations
 
 import argparse
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +31,12 @@ def run_text_queries(run_dir: Path, num_features: int, labels: list[str], args, 
     pca_path = Path(run_dir) / "pca.npz"
     if not pca_path.is_file():
         raise UserError(f"{run_dir} has no pca.npz: text queries need the run's feature compression")
-    projection = Talk2DinoProjection.load(args.projection) if args.projection else None
-    q = text_queries(labels, encoder, projection, PCA.load(pca_path))
+    try:
+        projection = Talk2DinoProjection.load(args.projection) if args.projection else None
+        pca = PCA.load(pca_path)
+    except (OSError, ValueError, zipfile.BadZipFile) as e:  # not there, or not what was saved
+        raise UserError(str(e)) from e
+    q = text_queries(labels, encoder, projection, pca)
     if q.shape[1] != num_features:
         raise UserError(f"the text model gives {q.shape[1]}-d queries, the map has {num_features}-d features")
     return q

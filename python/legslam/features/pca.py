@@ -8,6 +8,9 @@ largest-magnitude entry of each is positive (deterministic across runs).
 
 from __future__ import annotations
 
+import zipfile
+import zlib
+
 import numpy as np
 
 
@@ -120,14 +123,25 @@ class PCA:
 
     @classmethod
     def load(cls, path) -> "PCA":
-        with np.load(path) as z:
+        """Reads what `save` wrote; ValueError naming the file when it is anything else
+        (FileNotFoundError when there is none)."""
+        try:
+            z = np.load(path, allow_pickle=False)
+        except (ValueError, EOFError, zipfile.BadZipFile) as e:
+            raise ValueError(f"{path} is not a legslam PCA file ({e})") from None
+        if not isinstance(z, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path} is not a legslam PCA file (one array, not an .npz archive)")
+        with z:
             missing = {"n_components", "n_samples", "sum", "scatter", "mean", "components", "explained_variance"}
             missing -= set(z.files)
             if missing:
                 raise ValueError(f"{path} is not a legslam PCA file: missing {sorted(missing)}")
-            pca = cls(int(z["n_components"]))
-            pca.n_samples = int(z["n_samples"])
-            pca._sum, pca._scatter = z["sum"], z["scatter"]
-            # The saved solution, not a re-solve: loading must reproduce the same transform.
-            pca._solution = (z["mean"], z["components"], z["explained_variance"])
+            try:
+                pca = cls(int(z["n_components"]))
+                pca.n_samples = int(z["n_samples"])
+                pca._sum, pca._scatter = z["sum"], z["scatter"]
+                # The saved solution, not a re-solve: loading must reproduce the same transform.
+                pca._solution = (z["mean"], z["components"], z["explained_variance"])
+            except (ValueError, EOFError, OSError, zipfile.BadZipFile, zlib.error) as e:  # damaged
+                raise ValueError(f"{path} is a damaged PCA file ({e})") from None
         return pca
