@@ -100,13 +100,22 @@ def test_cli_run_writes_a_trajectory_per_frame(scene, tmp_path, capsys):
     assert "ATE RMSE" in capsys.readouterr().out
 
 
-def test_cli_errors_are_actionable(tmp_path, capsys):
+def test_cli_errors_are_actionable(scene, mapped, tmp_path, capsys):
     assert main(["run", str(tmp_path / "nowhere")]) == 2
     assert "nowhere" in capsys.readouterr().err
     assert main(["run", str(tmp_path), "--stride", "0"]) == 2
     assert "--stride must be at least 1" in capsys.readouterr().err
     assert main(["run", str(tmp_path), "--final-iters", "-1"]) == 2
     assert "--final-iters must be at least 0" in capsys.readouterr().err
+    # Where outputs cannot go: said before any work.
+    (tmp_path / "a-file").write_text("")
+    for command in (["run", str(scene), "--out", str(tmp_path / "a-file")],
+                    ["demo", "--out", str(tmp_path / "a-file" / "sub")],
+                    ["render", mapped["out"], "--out", str(tmp_path / "a-file")]):
+        assert main(command) == 2, command
+        assert f"{tmp_path / 'a-file'}" in capsys.readouterr().err, command
+    assert main(["odometry", str(tmp_path), "--out", str(tmp_path)]) == 2
+    assert "is a folder: give a file name" in capsys.readouterr().err
 
 
 def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 
 # subcommand -> (module, one-line help)
 COMMANDS = {
@@ -29,6 +30,28 @@ def at_least(name: str, v, least: int = 1) -> None:
     """Rejects option `name`'s value `v` below `least` (None: not given, accepted)."""
     if v is not None and v < least:
         raise UserError(f"{name} must be at least {least}, got {v}")
+
+
+def output_dir(path) -> Path:
+    """Makes the output folder `path` (parents too) before any work is done; a UserError
+    naming it when it cannot be made."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UserError(f"the output folder {p} is a file")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise UserError(f"cannot make the output folder {p}: {e.strerror or e}") from e
+    return p
+
+
+def output_file(path) -> Path:
+    """Checks that the output file `path` can be made (its folder is made) before any work."""
+    p = Path(path)
+    if p.is_dir():
+        raise UserError(f"{p} is a folder: give a file name to write")
+    output_dir(p.parent)
+    return p
 
 
 def load_map(path):

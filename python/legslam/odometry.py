@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from legslam.cli import UserError, at_least
+from legslam.cli import UserError, at_least, output_file
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -83,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
     at_least("--stride", args.stride)
     at_least("--downscale", args.downscale)
     at_least("--max-frames", args.max_frames)
+    output_file(args.out)
     try:
         seq = datasets.open(args.path, format=args.format, stride=args.stride,
                             max_frames=args.max_frames, downscale=args.downscale)

@@ -90,7 +90,7 @@ def _legend_image(labels_img: np.ndarray, names: list[str], rgb: np.ndarray) -> 
 def run(args) -> int:
     import cv2
 
-    from .cli import UserError
+    from .cli import UserError, output_dir
     from .query import heatmap, mask, query_from_pixel, save_overlay, segment
 
     run_dir = Path(args.run)
@@ -108,8 +108,7 @@ def run(args) -> int:
         where = f"frame{args.frame:06d}"
     if not (args.texts or args.example or args.labels):
         raise UserError("nothing to query: give text queries, --example N:X,Y or --labels a,b,c")
-    out = Path(args.out) if args.out else run_dir / "queries"
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(Path(args.out) if args.out else run_dir / "queries")
     view = r.render(pose)
     rgb = (np.clip(view.color, 0, 1) * 255).astype(np.uint8)
 

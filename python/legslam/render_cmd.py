@@ -25,7 +25,7 @@ def run(args) -> int:
 
     import cv2
 
-    from .cli import UserError, at_least, load_map
+    from .cli import UserError, at_least, load_map, output_dir
     from .eval import TrajectoryError, read_tum
     from .pipeline import feature_basis, feature_rgb
 
@@ -54,8 +54,7 @@ def run(args) -> int:
     except (OSError, TrajectoryError) as e:
         raise UserError(f"cannot read the trajectory {traj}: {e}") from e
     m = load_map(map_path)
-    out = Path(args.out) if args.out else run_dir / "views"
-    out.mkdir(parents=True, exist_ok=True)
+    out = output_dir(Path(args.out) if args.out else run_dir / "views")
     features = m.num_features > 0 and not args.no_features
     basis = None
     picked = range(0, len(poses), args.every)

@@ -67,11 +67,11 @@ def run_config(args):
 
 
 def run_sequence(seq, name: str, args, config) -> int:
-    from .cli import UserError
+    from .cli import UserError, output_dir
     from .datasets import DatasetError
     from .pipeline import run
 
-    out = Path(args.out or Path("legslam-out") / name)
+    out = output_dir(args.out or Path("legslam-out") / name)
     viewer = _viewer(args)
     try:
         result = run(seq, out, config, progress=not args.quiet, viewer=viewer)
