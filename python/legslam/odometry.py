@@ -3,7 +3,7 @@
 Each frame is tracked against the previous one (dense point-to-plane + photometric alignment
 in the engine) from a constant-velocity prediction. The trajectory is written in TUM format
 (`t tx ty tz qx qy qz qw`, camera-to-world), one pose per frame; a frame whose alignment is
-"lost" keeps the prediction and is counted. Progress goes to stderr; the ATE against the
+"lost" keeps the prediction and is counted, a frame that cannot be read is left out (warned). Progress goes to stderr; the ATE against the
 ground truth is printed at the end when the sequence has one.
 """
 
@@ -38,46 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
-def _write_tum(path: str, stamps, poses) -> None:
-    try:
-        from legslam.eval import write_tum
-    except ImportError:  # the evaluation module is optional for this command
-        write_tum = _write_tum_local
-    write_tum(path, stamps, poses)
-
-
-def _write_tum_local(path: str, stamps, poses) -> None:
-    with open(path, "w") as fh:
-        for t, p in zip(stamps, poses):
-            q = _quat_xyzw(np.asarray(p, dtype=np.float64)[:3, :3])
-            x, y, z = np.asarray(p)[:3, 3]
-            fh.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} "
-                     f"{q[0]:.6f} {q[1]:.6f} {q[2]:.6f} {q[3]:.6f}\n")
-
-
-def _quat_xyzw(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix."""
-    t = np.trace(r)
-    if t > 0:
-        s = np.sqrt(t + 1.0) * 2
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    else:
-        i = int(np.argmax(np.diag(r)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k]) * 2
-        q = [0.0, 0.0, 0.0, (r[k, j] - r[j, k]) / s]
-        q[i] = s / 4
-        q[j] = (r[j, i] + r[i, j]) / s
-        q[k] = (r[k, i] + r[i, k]) / s
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
-
-
 def run(args: argparse.Namespace) -> int:
-    try:
-        from legslam import datasets
-    except ImportError as e:
-        raise UserError(f"the dataset loaders (legslam.datasets) are not available: {e}")
+    from legslam import datasets
+    from legslam.eval import ate_rmse, write_tum
     from legslam.tracking import DEFAULT_CONFIG, Odometry, fitting_levels
 
     at_least("--stride", args.stride)
@@ -145,20 +108,15 @@ def run(args: argparse.Namespace) -> int:
                 print(("\r" + msg) if tty else msg, end="" if tty and i + 1 < n else "\n",
                       file=sys.stderr, flush=True)
     except datasets.DatasetError as e:  # too many unreadable in a row: keep what is done
-        _write_tum(args.out, stamps, poses)
+        write_tum(args.out, stamps, poses)
         raise UserError(f"{e}; the trajectory of the frames before is in {args.out}")
 
-    _write_tum(args.out, stamps, poses)
+    write_tum(args.out, stamps, poses)
     total = time.perf_counter() - t_start
     med = statistics.median(times) if times else float("nan")
     print(f"{n} frames in {total:.1f} s, median {med:.1f} ms/frame (tracking only), "
           f"{lost} lost, {skipped} unreadable; trajectory written to {args.out}")
-    if all(p is not None for p in gt) and n > 2:
-        try:
-            from legslam.eval import ate_rmse
-        except ImportError:
-            print("ATE not computed: legslam.eval is not available", file=sys.stderr)
-        else:
-            ate = float(ate_rmse(np.asarray(gt), np.asarray(poses)))
-            print(f"ATE RMSE (SE(3)-aligned): {ate * 100:.2f} cm")
+    if all(p is not None for p in gt) and len(gt) > 2:
+        ate = float(ate_rmse(np.asarray(gt), np.asarray(poses)))
+        print(f"ATE RMSE (SE(3)-aligned): {ate * 100:.2f} cm")
     return 0
