@@ -5,6 +5,7 @@ import json
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -119,8 +120,6 @@ def test_cli_errors_are_actionable(scene, mapped, tmp_path, capsys):
 
 
 def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):
-    import cv2
-
     out = Path(mapped["out"])
     assert main(["render", str(out), "--every", "10", "--out", str(tmp_path)]) == 0
     views = sorted(tmp_path.glob("*_color.png"))
@@ -427,3 +426,29 @@ def test_commands_name_a_damaged_map(mapped, tmp_path, capsys):
                     ["query", str(run_dir), "chair"]):
         assert main(command) == 2, command
         assert "map.ply is cut short" in capsys.readouterr().err, command
+
+
+def test_frames_without_depth_are_counted_and_an_empty_map_is_said(scene, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "scene"
+    shutil.copytree(scene, copy)
+    depths = sorted((copy / "depth").iterdir())
+    blank = np.zeros_like(cv2.imread(str(depths[0]), cv2.IMREAD_UNCHANGED))
+    cv2.imwrite(str(depths[5]), blank)
+    args = ["run", str(copy), "--no-features", "--quiet", "--max-frames", "8", "--final-iters", "5"]
+    assert main([*args, "--out", str(tmp_path / "one")]) == 0
+    printed = capsys.readouterr()
+    assert "warning: frame 5 has no valid depth" in printed.err and "map is empty" not in printed.err
+    metrics = json.loads((tmp_path / "one" / "metrics.json").read_text())
+    assert metrics["frames_without_depth"] == 1
+    assert metrics["every_5"]["depth_l1_cm"] is not None  # from frame 0, frame 5 has none
+
+    for d in depths:
+        cv2.imwrite(str(d), blank)
+    assert main([*args, "--out", str(tmp_path / "none")]) == 0
+    printed = capsys.readouterr()
+    assert "warning: the map is empty: 8 of 8 frames had no valid depth" in printed.err
+    assert "depth L1 n/a" in printed.out
+    assert main(["eval", str(tmp_path / "none")]) == 0
+    assert "| depth_l1_cm | n/a |" in capsys.readouterr().out

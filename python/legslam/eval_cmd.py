@@ -118,10 +118,12 @@ def run(args) -> int:
         target = f.rgb.astype(np.float32) / 255
         vals["psnr"].append(psnr(color, target, data_range=1.0))
         vals["ssim"].append(ssim(color, target, data_range=1.0))
-        vals["depth_l1_cm"].append(depth_l1_cm(out.depth, f.depth))
+        l1 = depth_l1_cm(out.depth, f.depth)
+        if l1 is not None:  # frames without valid depth have none
+            vals["depth_l1_cm"].append(l1)
         if sem is not None:
             sem.add(i, out.features, f.labels)
-    report.update({k: float(np.mean(v)) for k, v in vals.items()}, views=len(vals["psnr"]))
+    report.update({k: float(np.mean(v)) if v else None for k, v in vals.items()}, views=len(vals["psnr"]))
     report["gaussians"] = len(m)
     if sem is not None and sem.views == 0:
         print("note: no semantic metrics: every evaluated view is a support view (use a smaller --every)")
@@ -177,4 +179,4 @@ def _print_table(report: dict) -> None:
         rows += [(f"{k}[{name}]", x) for name, x in v.items() if x is not None] if isinstance(v, dict) else [(k, v)]
     print("| metric | value |\n|---|---|")
     for k, v in rows:
-        print(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {v} |")
+        print(f"| {k} | {v:.4g} |" if isinstance(v, float) else f"| {k} | {'n/a' if v is None else v} |")

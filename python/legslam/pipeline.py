@@ -110,7 +110,9 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
                                                  data_range=1.0))
             vals["psnr"].append(psnr(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
             vals["ssim"].append(ssim(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
-            vals["depth_l1_cm"].append(depth_l1_cm(r["depth"], f.depth))
+            l1 = depth_l1_cm(r["depth"], f.depth)
+            if l1 is not None:  # frames without valid depth have none
+                vals["depth_l1_cm"].append(l1)
             if renders_dir is not None and name.startswith("every") and i in show:
                 side = np.concatenate([f.rgb, _to_u8(color)], axis=1)
                 _save_png(renders_dir / f"frame{i:06d}_input_render.png", side)
@@ -194,6 +196,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     t0 = time.perf_counter()
     stamps, viewer_ms = [], []
     unreadable: set[int] = set()
+    no_depth: list[int] = []
     try:
         for i, f in each_readable(seq):
             if f is None:  # lost: the motion model's pose
@@ -202,6 +205,11 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
                 slam.skip()
                 continue
             stamps.append(f.timestamp)
+            if not np.any(f.depth > 0):
+                if not no_depth:
+                    print(f"warning: frame {i} has no valid depth, so it cannot grow the map "
+                          "(frames like it are counted in metrics.json)", file=sys.stderr)
+                no_depth.append(i)
             r = slam.step(f.rgb, f.depth)
             if viewer is not None:
                 t1 = time.perf_counter()
@@ -227,6 +235,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     renders.mkdir(exist_ok=True)
     metrics = evaluate(slam, seq, every=evaluate_every, renders_dir=renders, skip=unreadable)
     metrics["unreadable_frames"] = sorted(unreadable)
+    metrics["frames_without_depth"] = len(no_depth)
     metrics["gaussians"] = slam.mapper.num_gaussians
     metrics["fps"] = timings["fps"]
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

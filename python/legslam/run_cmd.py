@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 
@@ -82,11 +83,18 @@ def run_sequence(seq, name: str, args, config) -> int:
     unreadable = f" ({len(m['unreadable_frames'])} unreadable)" if m["unreadable_frames"] else ""
     print(f"frames {m['frames']}  keyframes {m['keyframes']}  lost {m['lost_frames']}{unreadable}  "
           f"gaussians {m['gaussians']}  {t['fps']:.2f} fps ({t['fps_live']:.2f} while frames came in)")
+    if m["gaussians"] == 0:
+        print(f"warning: the map is empty: {m['frames_without_depth']} of {m['frames']} frames "
+              "had no valid depth (check the depth files and their scale)", file=sys.stderr)
     if "ate_rmse_m" in m:
         print(f"ATE RMSE {100 * m['ate_rmse_m']:.2f} cm")
     every = next(k for k in m if k.startswith("every_"))
-    print(f"PSNR {m[every]['psnr']:.2f} dB  SSIM {m[every]['ssim']:.3f}  depth L1 "
-          f"{m[every]['depth_l1_cm']:.2f} cm  (map rendered at {every.replace('_', ' ')} frame)")
+    e = m[every]
+
+    def fmt(v, spec):  # a figure no frame could give (no readable frame, no valid depth) is None
+        return "n/a" if v is None else format(v, spec)
+    print(f"PSNR {fmt(e['psnr'], '.2f')} dB  SSIM {fmt(e['ssim'], '.3f')}  depth L1 "
+          f"{fmt(e['depth_l1_cm'], '.2f')} cm  (map rendered at {every.replace('_', ' ')} frame)")
     print("per-stage mean ms/frame: " + "  ".join(
         f"{k} {t[k]['mean_ms']:.1f}" for k in ("preprocessing", "tracking", "mapping")))
     print(f"outputs in {out}/: trajectory.txt map.ply metrics.json timings.json renders/")

@@ -59,16 +59,16 @@ def ssim(a, b, data_range=None) -> float:
     return float(np.mean(scores))
 
 
-def depth_l1_cm(pred, gt) -> float:
-    """Mean |pred - gt| in centimetres over pixels with valid ground truth (gt > 0, finite).
-    A pixel the prediction leaves empty (0) counts with its full error; a non-finite
-    prediction is an error, not a pixel to skip."""
+def depth_l1_cm(pred, gt) -> float | None:
+    """Mean |pred - gt| in centimetres over pixels with valid ground truth (gt > 0, finite);
+    None when there is none (nothing to compare). A pixel the prediction leaves empty (0)
+    counts with its full error; a non-finite prediction is an error, not a pixel to skip."""
     pred, gt = np.asarray(pred, dtype=np.float64), np.asarray(gt, dtype=np.float64)
     if pred.shape != gt.shape:
         raise ValueError(f"depth maps differ in shape: {pred.shape} vs {gt.shape}")
     valid = np.isfinite(gt) & (gt > 0)
     if not valid.any():
-        raise ValueError("the ground-truth depth has no valid pixel")
+        return None
     if not np.all(np.isfinite(pred[valid])):
         raise ValueError("the predicted depth has non-finite values where the ground truth is valid")
     return float(np.abs(pred[valid] - gt[valid]).mean() * 100.0)
