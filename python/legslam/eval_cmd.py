@@ -101,8 +101,8 @@ def run(args) -> int:
     if not gt:
         raise UserError(f"none of the run's {len(poses)} frames of {seq_path} can be read")
     if len(gt) >= 3 and all(g is not None for g in gt.values()):
-        a = ate(np.stack(list(gt.values())), poses[list(gt)])
-        r = rpe(np.stack(list(gt.values())), poses[list(gt)])
+        truth, estimate = np.stack(list(gt.values())), poses[list(gt)]
+        a, r = ate(truth, estimate), rpe(truth, estimate)
         report.update(ate_rmse_cm=100 * a["rmse"], ate_mean_cm=100 * a["mean"],
                       rpe_trans_rmse_cm=100 * r["trans"]["rmse"], rpe_rot_rmse_deg=r["rot"]["rmse"])
     m = load_map(run_dir / "map.ply")

@@ -3,8 +3,9 @@
 Each frame is tracked against the previous one (dense point-to-plane + photometric alignment
 in the engine) from a constant-velocity prediction. The trajectory is written in TUM format
 (`t tx ty tz qx qy qz qw`, camera-to-world), one pose per frame; a frame whose alignment is
-"lost" keeps the prediction and is counted, a frame that cannot be read is left out (warned). Progress goes to stderr; the ATE against the
-ground truth is printed at the end when the sequence has one.
+"lost" keeps the prediction and is counted, a frame that cannot be read is left out (warned).
+Progress goes to stderr; the ATE against the ground truth is printed at the end when the
+sequence has one.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     h, w = first.depth.shape
     finest = args.finest_level
     if finest is None:
-        finest = min(DEFAULT_CONFIG["finest_level"], max(0, int(np.log2(max(w, 160) / 160))))
+        finest = min(DEFAULT_CONFIG["finest_level"], int(np.log2(max(w, 160) / 160)))
     config = {"finest_level": finest}
     if args.levels is not None:
         config["levels"] = args.levels

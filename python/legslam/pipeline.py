@@ -196,7 +196,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     t0 = time.perf_counter()
     stamps, viewer_ms = [], []
     unreadable: set[int] = set()
-    no_depth: list[int] = []
+    no_depth = 0  # frames without any valid depth pixel
     try:
         for i, f in each_readable(seq):
             if f is None:  # lost: the motion model's pose
@@ -209,7 +209,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
                 if not no_depth:
                     print(f"warning: frame {i} has no valid depth, so it cannot grow the map "
                           "(frames like it are counted in metrics.json)", file=sys.stderr)
-                no_depth.append(i)
+                no_depth += 1
             r = slam.step(f.rgb, f.depth)
             if viewer is not None:
                 t1 = time.perf_counter()
@@ -235,7 +235,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
     renders.mkdir(exist_ok=True)
     metrics = evaluate(slam, seq, every=evaluate_every, renders_dir=renders, skip=unreadable)
     metrics["unreadable_frames"] = sorted(unreadable)
-    metrics["frames_without_depth"] = len(no_depth)
+    metrics["frames_without_depth"] = no_depth
     metrics["gaussians"] = slam.mapper.num_gaussians
     metrics["fps"] = timings["fps"]
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -26,7 +26,8 @@ import numpy as np
 
 from legslam import _core
 
-__all__ = ["DEFAULT_CONFIG", "fitting_levels", "TrackResult", "Tracker", "Reference", "Odometry", "OdometryStep"]
+__all__ = ["DEFAULT_CONFIG", "fitting_levels", "TrackResult", "Tracker", "Reference", "Odometry",
+           "OdometryStep"]
 
 #: The engine's default tracker options (`Tracker(**overrides)` changes any of them).
 DEFAULT_CONFIG: dict[str, Any] = dict(_core.tracker_default_config())

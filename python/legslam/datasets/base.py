@@ -7,6 +7,7 @@ them, `_pose` and `_timestamp`. Everything it returns is at the dataset's native
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Optional, Sequence as SequenceT
@@ -277,8 +278,6 @@ def each_readable(seq) -> Iterator[tuple[int, Optional[Frame]]]:
     """(k, frame) for every frame of `seq` in order; frame is None where it cannot be read,
     with a warning on stderr that says why. Raises DatasetError once MAX_UNREADABLE_IN_A_ROW
     frames in a row could not be read."""
-    import sys
-
     in_a_row = 0
     for k in range(len(seq)):
         try:
