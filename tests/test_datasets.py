@@ -289,6 +289,23 @@ def test_loading_is_lazy(folder_dir, monkeypatch):
     assert [c.name for c in calls] == ["2.png"]
 
 
+@pytest.mark.parametrize("fixture", ["tum_dir", "sevenscenes_dir", "folder_dir", "scannet_dir"])
+def test_poses_and_timestamps_are_read_without_images(fixture, request):
+    seq = D.open(request.getfixturevalue(fixture)[0], stride=2)
+    frames = list(seq)
+
+    def no_images(i):
+        raise AssertionError(f"frame {i}'s images were read")
+
+    seq._read = no_images
+    for k, f in enumerate(frames):
+        assert (seq.pose(k) is None) == (f.pose is None)
+        if f.pose is not None:
+            np.testing.assert_array_equal(seq.pose(k), f.pose)
+        assert seq.timestamp(k) == f.timestamp
+    assert any(f.pose is not None for f in frames)
+
+
 # --- bad input ----------------------------------------------------------------------------
 
 def test_nothing_recognised_lists_what_was_looked_for(tmp_path):

@@ -326,6 +326,9 @@ class _Dimmed:
     def __init__(self, seq):
         self.seq = seq
 
+    def __getattr__(self, name):  # poses, timestamps, camera: the scene's
+        return getattr(self.seq, name)
+
     def __len__(self):
         return len(self.seq)
 

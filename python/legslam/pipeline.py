@@ -85,7 +85,7 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
                  "keyframe_frames": list(slam.keyframe_frames),
                  "lost_frames": int(sum(s == "lost" for s in slam.states))}
     readable = [i for i in range(n) if i not in skip]
-    gt = [seq[i].pose for i in readable]
+    gt = [seq.pose(i) for i in readable]
     if len(readable) >= 3 and all(p is not None for p in gt):
         stats = ate(np.stack(gt), np.stack([slam.poses[i] for i in readable]))
         out["ate_rmse_m"] = stats["rmse"]

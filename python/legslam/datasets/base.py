@@ -195,6 +195,10 @@ class Sequence:
         """The k-th frame's timestamp (seconds), read without its images."""
         return float(self._timestamp(self._indices[k]))
 
+    def pose(self, k: int) -> Optional[np.ndarray]:
+        """The k-th frame's ground-truth pose (None when it has none), read without its images."""
+        return self._pose(self._indices[k])
+
     def __getitem__(self, k: int) -> Frame:
         if not isinstance(k, (int, np.integer)):
             raise TypeError(f"sequence indices must be integers, not {type(k).__name__}")
@@ -209,7 +213,7 @@ class Sequence:
         if labels is not None and labels.shape != (h, w):
             raise DatasetError(f"{where}: labels are {labels.shape[1]}x{labels.shape[0]}, expected {w}x{h}")
         rgb, depth, labels = self._transform(rgb, depth, labels)
-        return Frame(rgb=rgb, depth=depth, K=self.K.copy(), pose=self._pose(i),
+        return Frame(rgb=rgb, depth=depth, K=self.K.copy(), pose=self.pose(k),
                      timestamp=self.timestamp(k), index=int(i), labels=labels)
 
     def gt_trajectory(self) -> tuple:
