@@ -127,18 +127,6 @@ impl GaussianMap {
         duplicate_rows(&mut self.origin, 1, rows);
         duplicate_rows(&mut self.has_feature, 1, rows);
     }
-
-    /// Renormalises every quaternion (after an optimiser step).
-    pub fn normalize_quats(&mut self) {
-        for q in self.quats.chunks_exact_mut(4) {
-            let n = q.iter().map(|v| v * v).sum::<Real>().sqrt();
-            if n > 0.0 {
-                q.iter_mut().for_each(|v| *v /= n);
-            } else {
-                q.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-            }
-        }
-    }
 }
 
 fn retain_rows<T: Copy>(v: &mut Vec<T>, width: usize, keep: &[bool]) {
