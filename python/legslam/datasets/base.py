@@ -220,10 +220,10 @@ class Sequence:
         """(timestamps (M,), c2w poses (M,4,4)) of the selected frames that have a ground-truth
         pose, read without touching any image."""
         stamps, poses = [], []
-        for i in self._indices:
-            p = self._pose(i)
+        for k in range(len(self)):
+            p = self.pose(k)
             if p is not None:
-                stamps.append(self._timestamp(i))
+                stamps.append(self.timestamp(k))
                 poses.append(p)
         return np.asarray(stamps, dtype=np.float64), np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
 
