@@ -223,6 +223,21 @@ def test_depth_l1_hand_case():
     assert E.depth_l1_cm(pred, np.zeros((2, 2))) is None  # no valid ground truth: no figure
 
 
+def test_view_scores_average_each_figure_over_the_views_that_have_it():
+    rng = np.random.default_rng(3)
+    rgb = [rng.integers(0, 256, (16, 16, 3), dtype=np.uint8) for _ in range(2)]
+    color = [np.clip(c / 255.0 + rng.normal(0, 0.05, c.shape), 0, 1) for c in rgb]
+    depth = [np.full((16, 16), 2.0), np.zeros((16, 16))]  # the second frame has no valid depth
+    scores = E.ViewScores()
+    assert scores.means() == {"psnr": None, "ssim": None, "depth_l1_cm": None}
+    for c, r, d in zip(color, rgb, depth):
+        scores.add(c, np.full((16, 16), 2.1), r, d)
+    means = scores.means()
+    assert means["psnr"] == pytest.approx(np.mean([E.psnr(c, r / 255.0) for c, r in zip(color, rgb)]))
+    assert means["ssim"] == pytest.approx(np.mean([E.ssim(c, r / 255.0) for c, r in zip(color, rgb)]))
+    assert means["depth_l1_cm"] == pytest.approx(10.0)  # the first frame's alone
+
+
 def test_lpips_without_its_network_says_so():
     try:
         import lpips  # noqa: F401

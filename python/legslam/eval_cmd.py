@@ -58,7 +58,7 @@ def _open_selection(path, fmt: str, selection: dict):
 def run(args) -> int:
     from .cli import UserError, at_least, load_map
     from .datasets import DatasetError
-    from .eval import ate, depth_l1_cm, psnr, read_tum, rpe, ssim
+    from .eval import ViewScores, ate, read_tum, rpe
 
     run_dir = Path(args.run)
     for name in ("trajectory.txt", "map.ply", "camera.json"):
@@ -110,20 +110,14 @@ def run(args) -> int:
     views = [i for i in range(0, len(poses), args.every) if i in gt] or [next(iter(gt))]
     sem = _semantic_score(args, seq, run_dir, m, views, lambda i: frame(i).labels,
                           lambda i: m.render(poses[i], K, w, h, features=True).features)
-    vals = {"psnr": [], "ssim": [], "depth_l1_cm": []}
+    scores = ViewScores()
     for i in views:
         f = frame(i)
         out = m.render(poses[i], K, w, h, features=sem is not None)
-        color = np.clip(out.color, 0, 1)
-        target = f.rgb.astype(np.float32) / 255
-        vals["psnr"].append(psnr(color, target, data_range=1.0))
-        vals["ssim"].append(ssim(color, target, data_range=1.0))
-        l1 = depth_l1_cm(out.depth, f.depth)
-        if l1 is not None:  # frames without valid depth have none
-            vals["depth_l1_cm"].append(l1)
+        scores.add(np.clip(out.color, 0, 1), out.depth, f.rgb, f.depth)
         if sem is not None:
             sem.add(i, out.features, f.labels)
-    report.update({k: float(np.mean(v)) if v else None for k, v in vals.items()}, views=len(vals["psnr"]))
+    report.update(scores.means(), views=len(views))
     report["gaussians"] = len(m)
     if sem is not None and sem.views == 0:
         print("note: no semantic metrics: every evaluated view is a support view (use a smaller --every)")

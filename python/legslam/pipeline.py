@@ -78,7 +78,7 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
     """Renders the final map at the estimated pose of every `every`-th frame and of every
     keyframe; PSNR, SSIM and depth L1 against the input, and ATE when ground truth exists.
     Frames in `skip` (unreadable) are left out of every figure."""
-    from .eval import ate, depth_l1_cm, psnr, ssim
+    from .eval import ViewScores, ate, psnr
 
     n = len(slam.poses)
     out: dict = {"frames": n, "keyframes": len(slam.keyframe_frames),
@@ -96,9 +96,7 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
     # keyframe's): the map's colour is the first keyframe's exposure, the frames' varies.
     exposures = slam.frame_exposures()
     for name, frames in (("every_%d" % every, picked), ("at_keyframes", slam.keyframe_frames)):
-        vals = {"psnr": [], "ssim": [], "depth_l1_cm": []}
-        if exposures is not None:
-            vals["psnr_exposed"] = []
+        scores, exposed_psnr = ViewScores(), []
         for i in frames:
             f = seq[i]
             r = slam.render(slam.poses[i], features=renders_dir is not None and i in show)
@@ -106,19 +104,16 @@ def evaluate(slam: SLAM, seq, every: int = 5, renders_dir: Path | None = None,
             if exposures is not None:
                 gain, bias = exposures[i]
                 exposed = np.clip(r["color"] * gain + bias, 0, 1)
-                vals["psnr_exposed"].append(psnr(exposed, f.rgb.astype(np.float32) / 255.0,
-                                                 data_range=1.0))
-            vals["psnr"].append(psnr(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
-            vals["ssim"].append(ssim(color, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
-            l1 = depth_l1_cm(r["depth"], f.depth)
-            if l1 is not None:  # frames without valid depth have none
-                vals["depth_l1_cm"].append(l1)
+                exposed_psnr.append(psnr(exposed, f.rgb.astype(np.float32) / 255.0, data_range=1.0))
+            scores.add(color, r["depth"], f.rgb, f.depth)
             if renders_dir is not None and name.startswith("every") and i in show:
                 side = np.concatenate([f.rgb, _to_u8(color)], axis=1)
                 _save_png(renders_dir / f"frame{i:06d}_input_render.png", side)
                 if "features" in r:
                     _save_png(renders_dir / f"frame{i:06d}_features.png", feature_rgb(r["features"]))
-        out[name] = {k: float(np.mean(v)) if v else None for k, v in vals.items()}
+        out[name] = scores.means()
+        if exposures is not None:
+            out[name]["psnr_exposed"] = float(np.mean(exposed_psnr)) if exposed_psnr else None
         out[name]["count"] = len(frames)
     return out
 

@@ -2,10 +2,10 @@
 images (PSNR, SSIM, depth L1, optional LPIPS) and semantics (IoU, mIoU, mean accuracy)."""
 
 from .consistency import depth_reprojection
-from .image import MetricUnavailable, depth_l1_cm, lpips, psnr, ssim
+from .image import MetricUnavailable, ViewScores, depth_l1_cm, lpips, psnr, ssim
 from .semantic import SegmentationCounts, miou, segmentation_metrics
 from .trajectory import TrajectoryError, associate, ate, ate_rmse, read_tum, rpe, umeyama, write_tum
 
 __all__ = ["ate", "ate_rmse", "rpe", "read_tum", "write_tum", "associate", "umeyama",
-           "TrajectoryError", "psnr", "ssim", "depth_l1_cm", "lpips", "MetricUnavailable",
+           "TrajectoryError", "psnr", "ssim", "depth_l1_cm", "ViewScores", "lpips", "MetricUnavailable",
            "segmentation_metrics", "SegmentationCounts", "miou", "depth_reprojection"]

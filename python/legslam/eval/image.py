@@ -74,6 +74,27 @@ def depth_l1_cm(pred, gt) -> float | None:
     return float(np.abs(pred[valid] - gt[valid]).mean() * 100.0)
 
 
+class ViewScores:
+    """PSNR, SSIM and depth L1 of renders against the frames they stand for, gathered view by
+    view; `means()` gives each figure's mean, None where no view gave one (no view at all, or
+    none with valid depth)."""
+
+    def __init__(self):
+        self.values: dict[str, list[float]] = {"psnr": [], "ssim": [], "depth_l1_cm": []}
+
+    def add(self, color, depth, rgb_u8, gt_depth) -> None:
+        """`color` in [0, 1] (clipped by the caller), `rgb_u8` the frame's 8-bit colour."""
+        target = np.asarray(rgb_u8, dtype=np.float32) / 255.0
+        self.values["psnr"].append(psnr(color, target, data_range=1.0))
+        self.values["ssim"].append(ssim(color, target, data_range=1.0))
+        l1 = depth_l1_cm(depth, gt_depth)
+        if l1 is not None:  # frames without valid depth have none
+            self.values["depth_l1_cm"].append(l1)
+
+    def means(self) -> dict:
+        return {k: float(np.mean(v)) if v else None for k, v in self.values.items()}
+
+
 def lpips(a, b, net: str = "alex") -> float:
     """LPIPS (Zhang et al. 2018) between two RGB images, lower is closer.
 
