@@ -170,6 +170,40 @@ def test_sevenscenes_invalid_depth_default_camera_and_poses(sevenscenes_dir):
     np.testing.assert_allclose(D.open(p).K[1], [0, 21, 12])
 
 
+def test_sevenscenes_kinect_depth_is_registered_to_the_colour_camera(tmp_path):
+    from legslam.datasets import sevenscenes as S
+    from legslam.datasets.registration import register_depth
+
+    p = tmp_path / "seq-01"
+    raw = np.full((480, 640), 2000, np.uint16)
+    raw[200:280, 300:340] = 1000  # a near box
+    raw[:40] = 65535  # the invalid marker must not become a surface 65 m away
+    raw[40:50] = 0
+    write_rgb(p / "frame-000000.color.png", RNG.integers(0, 256, (480, 640, 3), dtype=np.uint8))
+    write_u16(p / "frame-000000.depth.png", raw)
+    write_matrix(p / "frame-000000.pose.txt", rot_z(30, (1, 2, 3)))
+    seq = D.open(p)
+    assert seq.registers_depth
+    np.testing.assert_allclose(seq.K, S.COLOR_K)
+    f = seq[0]
+    motion = S.COLOR_FROM_DEPTH.copy()
+    motion[:3, 3] *= 1000
+    clean = np.where(raw == 65535, 0, raw)
+    np.testing.assert_allclose(f.depth, register_depth(clean, S.DEFAULT_K, S.COLOR_K, motion, (640, 480)) / 1000)
+    assert f.depth.max() < 2.1 and (f.depth[:40] == 0).all()
+    # The colour camera's pose: where the depth camera's puts the colour camera's centre.
+    np.testing.assert_allclose(f.pose, rot_z(30, (1, 2, 3)) @ np.linalg.inv(S.COLOR_FROM_DEPTH), atol=1e-12)
+    np.testing.assert_allclose(seq.pose(0), f.pose)
+    # Given intrinsics or another camera in camera-intrinsics.txt: read as registered.
+    for kw in ({"intrinsics": (585.0, 585.0, 320.0, 240.0)}, {}):
+        if not kw:
+            write_matrix(p / "camera-intrinsics.txt", np.array([[570.3, 0, 320], [0, 570.3, 240], [0, 0, 1]]))
+        other = D.open(p, **kw)
+        assert not other.registers_depth
+        np.testing.assert_allclose(other[0].depth, clean / 1000)
+        np.testing.assert_allclose(other[0].pose, rot_z(30, (1, 2, 3)), atol=1e-9)
+
+
 # --- ScanNet -----------------------------------------------------------------------------
 
 @pytest.fixture

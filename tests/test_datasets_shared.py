@@ -16,15 +16,38 @@ ICL_CAMERA = (481.2, -480.0, 319.5, 239.5)  # from ICL-NUIM via SOURCE.md; the f
 
 
 def test_sevenscenes_matches_source_md():
-    seq = D.open(shared_path("data", "7scenes_tsdf_fusion", "data"))
+    p = shared_path("data", "7scenes_tsdf_fusion", "data")
+    seq = D.open(p, intrinsics=(585.0, 585.0, 320.0, 240.0))  # read as it is, not registered
     assert seq.format == "7scenes" and len(seq) == 1000 and (seq.width, seq.height) == (640, 480)
-    np.testing.assert_allclose(seq.K, [[585, 0, 320], [0, 585, 240], [0, 0, 1]])
+    assert not seq.registers_depth
     f0, f10 = seq[0], seq[10]
     valid = f0.depth[f0.depth > 0]
     assert 0.79 <= valid.min() and valid.max() <= 3.99  # 0.80 to 3.98 m; 65535 became 0
     assert 0.05 < (f0.depth == 0).mean() < 0.2  # ~11 % invalid
     r = depth_reprojection(f0, f10)  # SOURCE.md: median 0.4-0.6 cm, 95-99 % within 5 cm
     assert r["median_cm"] < 1.0 and r["within"] > 0.95
+
+
+def test_sevenscenes_depth_is_registered_to_the_colour_camera():
+    p = shared_path("data", "7scenes_tsdf_fusion", "data")
+    seq, raw = D.open(p), D.open(p, intrinsics=(585.0, 585.0, 320.0, 240.0))
+    assert seq.registers_depth
+    np.testing.assert_allclose(seq.K, [[525, 0, 320], [0, 525, 240], [0, 0, 1]])
+    f0 = seq[0]
+    valid = f0.depth[f0.depth > 0]
+    assert 0.78 <= valid.min() and valid.max() <= 4.0
+    # The depth camera's narrower view leaves the colour image's border without depth.
+    assert 0.2 < (f0.depth == 0).mean() < 0.35 and f0.depth[:, :5].max() == 0
+    # Geometry still agrees between frames, and colour now lies on its own surface: projected
+    # into another frame through its depth, it meets that frame's colour more closely.
+    for a, b in ((0, 30), (100, 140), (300, 340), (700, 740)):
+        r, r_raw = depth_reprojection(seq[a], seq[b]), depth_reprojection(raw[a], raw[b])
+        assert r["median_cm"] < 1.1 * r_raw["median_cm"] + 0.1 and r["within"] > 0.95 * r_raw["within"]
+        assert r["colour_l1"] < 0.9 * r_raw["colour_l1"], (a, b, r["colour_l1"], r_raw["colour_l1"])
+    # Poses are the colour camera's: the depth camera's moved by the fixed rig offset.
+    lever = np.linalg.inv(raw.pose(0)) @ seq.pose(0)
+    assert 0.02 < np.linalg.norm(lever[:3, 3]) < 0.03
+    np.testing.assert_allclose(np.linalg.inv(raw.pose(500)) @ seq.pose(500), lever, atol=1e-9)
 
 
 def test_sevenscenes_stride_and_downscale_keep_geometry():

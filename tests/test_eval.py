@@ -296,5 +296,10 @@ def test_depth_reprojection_on_a_plane():
     r = E.depth_reprojection(a, b)
     assert r["median_cm"] == pytest.approx(0, abs=1e-6) and r["within"] == 1.0
     assert r["overlap"] == pytest.approx(59 / 64, abs=0.02)  # 0.2 m at 2 m is 5 px of 64 out of view
+    assert r["colour_l1"] is None  # frames without colour
     b.depth = depth + 0.1
     assert E.depth_reprojection(a, b)["median_cm"] == pytest.approx(10, abs=1e-4)
+    # Colour that varies along x: a pixel lands 5 columns to the left in b, 5 levels apart.
+    ramp = np.repeat(np.arange(64, dtype=np.uint8)[None, :, None], 48, 0).repeat(3, 2)
+    a.rgb, b.rgb = ramp, ramp
+    assert E.depth_reprojection(a, b)["colour_l1"] == pytest.approx(5, abs=1e-9)

@@ -214,6 +214,11 @@ def test_eval_matches_a_downscaled_run_and_rejects_other_sizes(plain_run, tmp_pa
     assert "the run's images are 70x60 but" in capsys.readouterr().err
     assert main(["eval", str(run), "--every", "0"]) == 2
     assert "--every must be at least 1" in capsys.readouterr().err
+    K = np.array(cam["K"])
+    K[0, 0] *= 585 / 525  # a camera the sequence does not have (a 7-Scenes run read unregistered)
+    (run / "camera.json").write_text(json.dumps({**cam, "K": K.tolist()}))
+    assert main(["eval", str(run)]) == 2
+    assert "the run's camera (fx" in capsys.readouterr().err
 
 
 def test_a_map_without_features_has_no_semantic_metrics(plain_run, tmp_path, capsys):

@@ -77,6 +77,10 @@ def run(args) -> int:
     if (seq.width, seq.height) != (w, h):
         raise UserError(f"the run's images are {w}x{h} but {seq_path}'s are {seq.width}x{seq.height}, "
                         "not an integer downscale of them (a different sequence? give --sequence)")
+    if not np.allclose(seq.K, K, rtol=1e-4):
+        raise UserError(f"the run's camera (fx {K[0, 0]:.1f}, fy {K[1, 1]:.1f}) is not {seq_path}'s as "
+                        f"read now (fx {seq.K[0, 0]:.1f}, fy {seq.K[1, 1]:.1f}): a run by an older legslam, "
+                        "which read 7-Scenes depth unregistered? run it again")
     _, poses = read_tum(run_dir / "trajectory.txt")
     if len(poses) > len(seq):
         raise UserError(f"the trajectory has {len(poses)} poses but {seq_path} only {len(seq)} frames "
