@@ -195,6 +195,22 @@ def test_frames_without_valid_depth_do_not_stall_the_map(scene):
     assert slam.mapper.num_gaussians > 1000
 
 
+
+def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
+    # Depth on the right half only (7-Scenes' depth, registered to the colour camera, leaves the
+    # image border empty): the map never covers the left half, and that alone must not make
+    # every frame a keyframe.
+    seq = open_dataset(scene)
+    cfg = SLAMConfig(features=False, map_iters_keyframe=5, map_iters_frame=1, final_iters=0,
+                     keyframe_translation=10.0, keyframe_rotation=180.0, keyframe_max_gap=1000)
+    slam = SLAM(cfg, seq[0].K, 160, 120)
+    for i in range(8):
+        f = seq[i]
+        depth = f.depth.copy()
+        depth[:, :80] = 0
+        assert slam.step(f.rgb, depth).state != "lost"
+    assert len(slam.keyframe_frames) <= 3, slam.keyframe_frames
+
 def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, scene, tmp_path):
     cfg = SLAMConfig(features=False, final_iters=60, mapping_thread=True)
     threaded = run(open_dataset(scene), tmp_path, cfg, progress=False)

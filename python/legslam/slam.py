@@ -41,8 +41,8 @@ class SLAMConfig:
     #: narrower input).
     track_width: int = 320
     #: New keyframe when the camera moved this far (m) or turned this much (degrees) since the
-    #: last one, or the map covers less than `keyframe_overlap` of the view, or
-    #: `keyframe_max_gap` frames passed.
+    #: last one, or the map covers less than `keyframe_overlap` of the pixels where the frame
+    #: measured depth, or `keyframe_max_gap` frames passed.
     keyframe_translation: float = 0.1
     keyframe_rotation: float = 10.0
     keyframe_overlap: float = 0.9
@@ -226,7 +226,7 @@ class SLAM:
         self._anchors: list[tuple[int, np.ndarray]] = []
         self._last_kf: Optional[tuple] = None  # (pose, rgb_t, depth_t, frame index)
         self._last_tracked: Optional[tuple] = None  # (pose, rgb_t, depth_t)
-        self._prepared: Optional[tuple] = None  # (render, coverage, prepared reference or None)
+        self._prepared: Optional[tuple] = None  # (render, trusted pixels, prepared reference or None)
         self.timings: dict[str, list[float]] = {
             "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
         self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
@@ -356,7 +356,12 @@ class SLAM:
         little of the view or the alignment fails, against the last tracked frame, then the
         last keyframe. Lost only when all of them fail."""
         predicted = self._predict()
-        coverage, map_reference = self._map_reference(*self._reference_render(predicted))
+        trusted, map_reference = self._map_reference(*self._reference_render(predicted))
+        # What the map covers of what this frame measured: where it has no depth, a keyframe
+        # could not add anything (7-Scenes' registered depth leaves the image border empty).
+        measured = depth_t > 0
+        coverage = 1.0 if trusted is None else float(trusted[measured].mean() if measured.any()
+                                                     else trusted.mean())
 
         def references():  # prepared only when the one before fails
             if map_reference is not None:
@@ -374,22 +379,22 @@ class SLAM:
         return predicted, "lost", coverage, reason
 
     def _map_reference(self, pose, r) -> tuple:
-        """(coverage, the render prepared as a tracking reference or None when it covers too
-        little). A mapping thread's render serves many frames: it is prepared once."""
+        """(the pixels where the render is trusted, the render prepared as a tracking reference
+        or None when it covers too little). A mapping thread's render serves many frames: it is
+        prepared once."""
         if r is None:
-            return 1.0, None  # unknown until the mapping thread's first render: no keyframe for it
+            return None, None  # unknown until the mapping thread's first render: no keyframe for it
         if self._prepared is not None and self._prepared[0] is r:
             return self._prepared[1:]
         alpha = r["alpha"]
         trusted = alpha > self.config.reference_alpha
-        coverage = float(trusted.mean())
         reference = None
-        if coverage >= self.config.min_reference_coverage:
+        if trusted.mean() >= self.config.min_reference_coverage:
             depth = np.where(trusted, r["depth"] / np.maximum(alpha, 1e-6), 0).astype(np.float32)
             rgb = np.clip(r["color"] / np.maximum(alpha, 1e-6)[..., None], 0, 1)
             reference = self.tracker.prepare_reference(rgb, depth, self.K_track, pose)
-        self._prepared = (r, coverage, reference)
-        return coverage, reference
+        self._prepared = (r, trusted, reference)
+        return trusted, reference
 
     def _is_keyframe(self, i: int, pose: np.ndarray, coverage: float) -> bool:
         c = self.config
