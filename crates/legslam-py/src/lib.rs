@@ -3,6 +3,7 @@
 
 use pyo3::prelude::*;
 
+mod camera;
 mod map;
 mod pool;
 mod raster;
@@ -10,6 +11,7 @@ mod track;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    camera::register(m)?;
     map::register(m)?;
     raster::register(m)?;
     track::register(m)?;
