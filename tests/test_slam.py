@@ -196,6 +196,33 @@ def test_frames_without_valid_depth_do_not_stall_the_map(scene):
 
 
 
+def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scene, monkeypatch, capsys,
+                                                                            tmp_path):
+    import legslam.slam as slam_module
+
+    seq = open_dataset(scene)
+
+    def mapped(batch, progress=None):
+        monkeypatch.setattr(slam_module, "FINAL_BATCH", batch)
+        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, map_iters_frame=0, final_iters=60),
+                    seq[0].K, 160, 120)
+        for i in range(4):
+            slam.step(seq[i].rgb, seq[i].depth)
+        slam.finish(progress=progress)
+        return slam
+
+    calls = []
+    batched = mapped(25, lambda done, total: calls.append((done, total)))
+    assert calls == [(25, 60), (50, 60), (60, 60)]
+    whole = mapped(1000)
+    assert sum(s["iterations"] for s in batched.mapping_stats) == sum(s["iterations"] for s in whole.mapping_stats)
+    a, b = batched.render(batched.poses[2]), whole.render(whole.poses[2])
+    np.testing.assert_allclose(a["color"], b["color"], atol=1e-5)  # the same iterations, batched
+    capsys.readouterr()
+    run(seq, tmp_path, SLAMConfig(features=False, final_iters=30, map_iters_keyframe=2), progress=True)
+    assert "final mapping iterations 30/30" in capsys.readouterr().err
+
+
 def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
     # Depth on the right half only (7-Scenes' depth, registered to the colour camera, leaves the
     # image border empty): the map never covers the left half, and that alone must not make

@@ -32,16 +32,21 @@ class Progress:
         self._last = 0.0
 
     def update(self, i: int, text: str) -> None:
+        fps = (i + 1) / max(time.perf_counter() - self.start, 1e-9)
+        self._show(f"frame {i + 1}/{self.total}  {fps:5.2f} fps  {text}", i + 1 == self.total)
+
+    def final_iterations(self, done: int, total: int) -> None:
+        """The mapping iterations after the last frame (minutes with a large --final-iters)."""
+        self._show(f"final mapping iterations {done}/{total}", done == total)
+
+    def _show(self, line: str, last: bool) -> None:
         if not self.enabled:
             return
         now = time.perf_counter()
-        done = i + 1 == self.total
-        if not done and now - self._last < (0.2 if self.tty else 5.0):
+        if not last and now - self._last < (0.2 if self.tty else 5.0):
             return
         self._last = now
-        fps = (i + 1) / max(now - self.start, 1e-9)
-        line = f"frame {i + 1}/{self.total}  {fps:5.2f} fps  {text}"
-        print(("\r" + line + "\x1b[K") if self.tty else line, end="\n" if done or not self.tty else "",
+        print(("\r" + line + "\x1b[K") if self.tty else line, end="\n" if last or not self.tty else "",
               file=sys.stderr, flush=True)
 
 
@@ -213,7 +218,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress: bool = True,
             bar.update(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
                           f"gaussians {slam.num_gaussians}")
         live = time.perf_counter() - t0
-        slam.finish()
+        slam.finish(progress=bar.final_iterations)
     except BaseException:  # interrupted, or too many unreadable frames: keep the work done
         _save_partial(slam, out, stamps)
         raise

@@ -149,6 +149,8 @@ _KIND_NAMES = {bool: "true or false", int: "an integer", float: "a number", str:
                dict: "a table of options"}
 _NUMBER = {int: numbers.Integral, float: numbers.Real}
 _INF = float("inf")
+# The final mapping iterations run in batches of this many: progress, and Ctrl-C, in between.
+FINAL_BATCH = 25
 #: Each numeric option's range (inclusive).
 _RANGES = {
     "track_width": (16, _INF), "map_width": (16, _INF), "grow_width": (16, _INF),
@@ -412,9 +414,10 @@ class SLAM:
 
     # --- end of sequence ---------------------------------------------------------------------
 
-    def finish(self, train: bool = True) -> None:
+    def finish(self, train: bool = True, progress=None) -> None:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
-        mapping iterations (unless `train` is false: a run cut short keeps the map it has)."""
+        mapping iterations (unless `train` is false: a run cut short keeps the map it has), in
+        batches, calling `progress(done, total)` after each; Ctrl-C stops between batches."""
         if self._thread is not None:
             self._thread.stop()
             self.mapping_stats.extend(self._thread.stats)
@@ -422,10 +425,13 @@ class SLAM:
             self._thread = None
         if self._features is not None:
             self._features.drain()
-        if train and self.config.final_iters > 0:
+        total = self.config.final_iters if train else 0
+        for done in range(0, total, FINAL_BATCH):
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
-            self.mapping_stats.append(self.mapper.train(self.config.final_iters,
-                                                        window=self.mapper.num_keyframes))
+            n = min(FINAL_BATCH, total - done)
+            self.mapping_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes))
+            if progress is not None:
+                progress(done + n, total)
         self._follow_keyframes()
 
     def _follow_keyframes(self) -> None:
