@@ -158,6 +158,7 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
                  "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "ATE RMSE" in out and "PSNR" in out
+    assert "(map rendered at frames 0, 5, 10, ...)" in out
     _, poses = read_tum(tmp_path / "trajectory.txt")
     assert len(poses) == 6
     assert (tmp_path / "map.ply").is_file() and (tmp_path / "metrics.json").is_file()

@@ -89,12 +89,12 @@ def run_sequence(seq, name: str, args, config) -> int:
     if "ate_rmse_m" in m:
         print(f"ATE RMSE {100 * m['ate_rmse_m']:.2f} cm")
     every = next(k for k in m if k.startswith("every_"))
-    e = m[every]
+    e, n = m[every], int(every.split("_")[1])
 
     def fmt(v, spec):  # a figure no frame could give (no readable frame, no valid depth) is None
         return "n/a" if v is None else format(v, spec)
     print(f"PSNR {fmt(e['psnr'], '.2f')} dB  SSIM {fmt(e['ssim'], '.3f')}  depth L1 "
-          f"{fmt(e['depth_l1_cm'], '.2f')} cm  (map rendered at {every.replace('_', ' ')} frame)")
+          f"{fmt(e['depth_l1_cm'], '.2f')} cm  (map rendered at frames 0, {n}, {2 * n}, ...)")
     print("per-stage mean ms/frame: " + "  ".join(
         f"{k} {t[k]['mean_ms']:.1f}" for k in ("preprocessing", "tracking", "mapping")))
     print(f"outputs in {out}/: trajectory.txt map.ply metrics.json timings.json renders/")
