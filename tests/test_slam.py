@@ -196,7 +196,6 @@ def test_frames_without_valid_depth_do_not_stall_the_map(scene):
     assert slam.mapper.num_gaussians > 1000
 
 
-
 def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scene, monkeypatch, capsys,
                                                                             tmp_path):
     import legslam.slam as slam_module
@@ -238,6 +237,7 @@ def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
         depth[:, :80] = 0
         assert slam.step(f.rgb, depth).state != "lost"
     assert len(slam.keyframe_frames) <= 3, slam.keyframe_frames
+
 
 def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, scene, tmp_path):
     cfg = SLAMConfig(features=False, final_iters=60, mapping_thread=True)
