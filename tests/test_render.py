@@ -154,8 +154,10 @@ def test_bad_camera_and_gradients_raise_value_error():
         out.backward(d_color=np.full((H, W, 3), np.nan))
 
 
-def test_empty_map_renders_black():
+@pytest.mark.parametrize("coeffs", [1, 16])
+def test_empty_map_renders_black(coeffs):
     g = {k: v[:0] for k, v in scene().items()}
+    g["sh"] = np.zeros((0, coeffs, 3), np.float32)  # an empty map of any degree
     out = legslam.render(**g, K=K, pose=np.eye(4), width=W, height=H)
     assert not out.color.any() and not out.alpha.any()
     assert out.backward(d_color=np.ones((H, W, 3)))["means"].shape == (0, 3)

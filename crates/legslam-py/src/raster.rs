@@ -160,7 +160,12 @@ fn render<'py>(
     alpha: bool,
 ) -> PyResult<PyRender> {
     let n = opacity_logits.len();
-    let sh_coeffs = if n == 0 { 1 } else { sh.len() / (3 * n) };
+    // From the array's shape: an empty map keeps its degree.
+    let sh_coeffs = match sh.shape() {
+        [_, c, 3] => *c,
+        _ if n == 0 => 1,
+        _ => sh.len() / (3 * n),
+    };
     let gaussians = GaussianMap {
         means: contiguous("means", &means)?.to_vec(),
         log_scales: contiguous("log_scales", &log_scales)?.to_vec(),
