@@ -56,6 +56,11 @@ class SLAMConfig:
     #: narrower training level). On 7-Scenes, 150 frames at 320x240, seeding every other pixel
     #: gave a better map (22.9 against 22.6 dB) from a quarter of the Gaussians, 2.3x faster.
     grow_width: int = 160
+    #: Degree of the spherical harmonics of each Gaussian's colour (0: one colour seen alike
+    #: from everywhere; 3, as LEG-SLAM and 3DGS, 16 coefficients a channel). On 7-Scenes, 200
+    #: frames: 23.3 / 24.1 / 25.0 / 25.8 dB with degree 0 / 1 / 2 / 3, at the same speed: the
+    #: view-dependent colour follows gloss and the camera's exposure changing with where it looks.
+    sh_degree: int = 3
     #: Mapping iterations once the sequence has ended, on keyframes drawn from all of them.
     final_iters: int = 100
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
@@ -154,6 +159,7 @@ FINAL_BATCH = 25
 #: Each numeric option's range (inclusive).
 _RANGES = {
     "track_width": (16, _INF), "map_width": (16, _INF), "grow_width": (16, _INF),
+    "sh_degree": (0, 3),
     "keyframe_translation": (0.0, _INF), "keyframe_rotation": (0.0, _INF),
     "keyframe_overlap": (0.0, 1.0), "keyframe_max_gap": (1, _INF),
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
@@ -208,6 +214,7 @@ class SLAM:
         self.K_track = _scaled_K(self.K, self.track_size[0] / self.width)
         mapper_opts = dict(config.mapper)
         mapper_opts.setdefault("num_features", config.feature_dim if config.features else 0)
+        mapper_opts.setdefault("sh_degree", config.sh_degree)
         # Train and grow at about 320 pixels wide (full resolution for smaller inputs): what
         # two cores afford per iteration.
         level = 0
