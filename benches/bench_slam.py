@@ -70,12 +70,12 @@ def main() -> int:
     print(f"| frames / keyframes / lost | {m['frames']} / {m['keyframes']} / {m['lost_frames']} |")
     print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {100 * m['ate_rmse_m']:.2f} cm |")
     print(f"| ATE RMSE, tracker frame-to-frame odometry | {100 * odo_ate:.2f} cm ({odo_ms:.1f} ms/frame median) |")
-    for name in ("every_5", "at_keyframes"):
+    for name, label in (("every_5", "every 5th frame"), ("at_keyframes", "keyframes")):
         v = m[name]
-        print(f"| map at {name.replace('_', ' ')} ({v['count']} views): PSNR / SSIM / depth L1 | "
+        print(f"| map at {label} ({v['count']} views): PSNR / SSIM / depth L1 | "
               f"{v['psnr']:.2f} dB / {v['ssim']:.3f} / {v['depth_l1_cm']:.2f} cm |")
         if "psnr_exposed" in v:
-            print(f"| map at {name.replace('_', ' ')}, under each frame's keyframe exposure: PSNR | "
+            print(f"| map at {label}, under each frame's keyframe exposure: PSNR | "
                   f"{v['psnr_exposed']:.2f} dB |")
     print(f"| Gaussians | {m['gaussians']} |")
     print(f"| peak memory (RSS) | {peak_mb:.0f} MB |")
