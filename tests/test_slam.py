@@ -414,7 +414,7 @@ def test_view_dependent_colour_is_learned_by_the_spherical_harmonics(scene, tmp_
     cannot."""
     seq = _Regained(open_dataset(scene), lambda i, n: 0.8 + 0.4 * i / (n - 1))
 
-    def rise(sh_degree):
+    def mapped_with(sh_degree):
         """PSNR, and how much brighter than the unscaled frame the map renders at the end of
         the walk than at its start."""
         cfg = SLAMConfig(features=False, final_iters=30, sh_degree=sh_degree)
@@ -432,8 +432,8 @@ def test_view_dependent_colour_is_learned_by_the_spherical_harmonics(scene, tmp_
         return psnr_of(result), ratio[1] - ratio[0]
 
     assert SLAMConfig().sh_degree == 3
-    psnr3, rise3 = rise(3)
-    psnr0, rise0 = rise(0)
+    psnr3, rise3 = mapped_with(3)
+    psnr0, rise0 = mapped_with(0)
     assert rise3 > 0.1 and rise0 < 0.05, (rise3, rise0)  # the scene's own rise is 0.4
     assert psnr3 > psnr0 + 1.0, (psnr3, psnr0)
 

@@ -58,8 +58,8 @@ class SLAMConfig:
     grow_width: int = 160
     #: Degree of the spherical harmonics of each Gaussian's colour (0: one colour seen alike
     #: from everywhere; 3, as LEG-SLAM and 3DGS, 16 coefficients a channel). On 7-Scenes, 200
-    #: frames: 23.3 / 24.1 / 25.0 / 25.8 dB with degree 0 / 1 / 2 / 3, at the same speed: the
-    #: view-dependent colour follows gloss and the camera's exposure changing with where it looks.
+    #: frames: 23.3 / 24.1 / 25.0 / 25.8 dB with degree 0 / 1 / 2 / 3, at the same speed
+    #: (view-dependent colour can follow gloss, and an exposure that changes with the view).
     sh_degree: int = 3
     #: Mapping iterations once the sequence has ended, on keyframes drawn from all of them.
     final_iters: int = 100
