@@ -159,12 +159,12 @@ fn render<'py>(
     depth: bool,
     alpha: bool,
 ) -> PyResult<PyRender> {
-    let n = opacity_logits.len();
-    // From the array's shape: an empty map keeps its degree.
-    let sh_coeffs = match sh.shape() {
-        [_, c, 3] => *c,
-        _ if n == 0 => 1,
-        _ => sh.len() / (3 * n),
+    // The count from the array's shape, so that an empty map keeps its degree.
+    let &[_, sh_coeffs, 3] = sh.shape() else {
+        return Err(PyValueError::new_err(format!(
+            "sh must have shape (N, C, 3), got {:?}",
+            sh.shape()
+        )));
     };
     let gaussians = GaussianMap {
         means: contiguous("means", &means)?.to_vec(),
