@@ -8,7 +8,7 @@
 use std::path::PathBuf;
 use std::sync::LazyLock;
 
-use legslam_core::camera::Intrinsics;
+use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::raster::{backward, render, Camera, Gaussians, ImageGrads, RenderOptions};
 use legslam_core::Real;
 
@@ -111,12 +111,13 @@ fn camera() -> Camera {
         height: H,
     };
     let (c, s) = (2f64.to_radians().cos(), 2f64.to_radians().sin());
-    let w2c = [
-        [c, 0.0, s, 0.05],
-        [0.0, 1.0, 0.0, 0.0],
-        [-s, 0.0, c, 0.0],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
+    #[rustfmt::skip]
+    let w2c = Pose::new(
+        c, 0.0, s, 0.05,
+        0.0, 1.0, 0.0, 0.0,
+        -s, 0.0, c, 0.0,
+        0.0, 0.0, 0.0, 1.0,
+    );
     Camera::new(intr, &w2c).unwrap()
 }
 

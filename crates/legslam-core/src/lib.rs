@@ -1,16 +1,18 @@
 //! legslam engine: everything numeric and hot, with no Python in it.
 //!
 //! - [`raster`]: the differentiable Gaussian rasterizer (forward and hand-written backward).
-//! - [`camera`]: pinhole intrinsics and rigid poses shared by the rasterizer and the tracker.
+//! - [`camera`]: pinhole intrinsics, the pose type and its SE(3) algebra, depth registration.
 //! - [`map`]: the Gaussian map and how it grows, is pruned, densified and trained.
 //! - [`track`]: dense RGB-D pose tracking.
 //! - [`loss`]: the mapper's image losses (L1, SSIM, depth, feature cosine) with gradients.
 //! - [`optim`]: Adam over the Gaussians' parameter groups, following rows as they come and go.
+//! - [`options`]: every configuration's options by name, for files and bindings.
 
 pub mod camera;
 pub mod loss;
 pub mod map;
 pub mod optim;
+pub mod options;
 pub mod raster;
 pub mod rng;
 pub mod track;

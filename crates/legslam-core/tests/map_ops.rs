@@ -1,6 +1,6 @@
 //! Map growth, pruning and densification on small hand-built cases.
 
-use legslam_core::camera::{invert_rigid, transform_point, Intrinsics};
+use legslam_core::camera::{se3, Intrinsics, Pose};
 use legslam_core::map::densify::{densify, DensifyConfig, GradStats};
 use legslam_core::map::grow::{assign_features, grow, GrowConfig, RenderedView};
 use legslam_core::map::prune::{keep_mask, PruneConfig};
@@ -8,14 +8,16 @@ use legslam_core::map::{FeatureGrid, GaussianMap, Keyframe, NewGaussian};
 use legslam_core::rng::Rng;
 use legslam_core::Real;
 
-fn pose() -> [[f64; 4]; 4] {
+fn pose() -> Pose {
     let (c, s) = (0.4f64.cos(), 0.4f64.sin());
-    [
-        [c, 0.0, s, 1.0],
-        [0.0, 1.0, 0.0, -0.5],
-        [-s, 0.0, c, 2.0],
-        [0.0, 0.0, 0.0, 1.0],
-    ]
+    #[rustfmt::skip]
+    let p = Pose::new(
+        c, 0.0, s, 1.0,
+        0.0, 1.0, 0.0, -0.5,
+        -s, 0.0, c, 2.0,
+        0.0, 0.0, 0.0, 1.0,
+    );
+    p
 }
 
 /// A 16x12 keyframe looking at a wall 2 m away, with a hole of invalid depth.
@@ -53,9 +55,9 @@ fn growth_back_projects_valid_sampled_pixels() {
     assert_eq!(added, 8 * 6 - 1);
     assert_eq!(map.len(), added);
     // Every centre lies on the wall: 2 m in front of the camera, at its pixel.
-    let w2c = invert_rigid(&kf.pose);
+    let w2c = se3::inverse(&kf.pose);
     let m = &map.means[0..3];
-    let pc = transform_point(&w2c, [m[0] as f64, m[1] as f64, m[2] as f64]);
+    let pc = se3::transform_point(&w2c, &[m[0] as f64, m[1] as f64, m[2] as f64].into());
     assert!((pc[2] - 2.0).abs() < 1e-5, "{pc:?}");
     assert!(
         (20.0 * pc[0] / pc[2] + 7.5 - 3.0).abs() < 1e-4,

@@ -1,16 +1,9 @@
 //! The mapper end to end on a textured wall: training lowers the loss, densification and
 //! pruning keep the optimiser's rows in step with the map's.
 
-use legslam_core::camera::Intrinsics;
+use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::map::{Mapper, MapperConfig};
 use legslam_core::Real;
-
-const EYE: [[f64; 4]; 4] = [
-    [1.0, 0.0, 0.0, 0.0],
-    [0.0, 1.0, 0.0, 0.0],
-    [0.0, 0.0, 1.0, 0.0],
-    [0.0, 0.0, 0.0, 1.0],
-];
 
 fn wall(w: usize, h: usize) -> (Vec<Real>, Vec<Real>, Intrinsics) {
     let mut rgb = Vec::with_capacity(w * h * 3);
@@ -44,7 +37,7 @@ fn training_lowers_the_loss_and_refinement_keeps_rows_in_step() {
     cfg.densify.max_gaussians = 3000;
     let mut m = Mapper::new(cfg).unwrap();
     let (rgb, depth, k) = wall(64, 48);
-    let (_, added) = m.add_keyframe(rgb, depth, k, EYE).unwrap();
+    let (_, added) = m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
     assert_eq!(added, 32 * 24);
     let first = m.train(1).unwrap().last.total;
     let report = m.train(60).unwrap();
@@ -57,7 +50,7 @@ fn training_lowers_the_loss_and_refinement_keeps_rows_in_step() {
     );
     // A second, overlapping keyframe adds little: the map already explains its depth.
     let (rgb, depth, k) = wall(64, 48);
-    let (_, more) = m.add_keyframe(rgb, depth, k, EYE).unwrap();
+    let (_, more) = m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
     assert!(
         more < added / 4,
         "{more} new Gaussians for a view already mapped"
@@ -66,25 +59,28 @@ fn training_lowers_the_loss_and_refinement_keeps_rows_in_step() {
 }
 
 #[test]
-fn options_by_name_round_trip_and_reject_unknown_or_fractional() {
+fn mapper_options_by_name_reach_their_fields_and_keep_their_kinds() {
+    use legslam_core::options::{Options, Value};
+
     let mut c = MapperConfig::default();
-    c.set("window", 4.0).unwrap();
-    c.set("lr_sh", 0.01).unwrap();
+    c.set("window", Value::Int(4)).unwrap();
+    c.set("lr_sh", Value::Real(0.01)).unwrap();
+    c.set("adam_sparse", Value::Bool(true)).unwrap();
+    assert_eq!(c.window, 4);
+    assert!((c.adam.lr.sh - 0.01).abs() < 1e-9 && c.adam.sparse);
     let entries = c.entries();
-    assert!(entries.contains(&("window", 4.0)));
-    assert!(entries
-        .iter()
-        .any(|(k, v)| *k == "lr_sh" && (*v - 0.01).abs() < 1e-9));
-    assert!(c
-        .set("windw", 1.0)
-        .unwrap_err()
-        .contains("unknown mapper option"));
-    assert!(c.set("window", 2.5).is_err());
-    assert!(c.set("lr_sh", f64::NAN).is_err());
-    c.set("adam_sparse", 1.0).unwrap();
-    assert!(c.adam.sparse);
-    assert!(c.entries().contains(&("adam_sparse", 1.0)));
-    assert!(c.set("adam_sparse", 0.5).is_err());
+    assert!(entries.contains(&("window", Value::Int(4))));
+    assert!(entries.contains(&("adam_sparse", Value::Bool(true))));
+    let unknown = c.set("windw", Value::Int(1)).unwrap_err();
+    assert!(unknown.contains("unknown mapper option"), "{unknown}");
+    assert!(c.set("window", Value::Real(2.5)).is_err());
+    assert!(
+        c.set("adam_sparse", Value::Int(1)).is_err(),
+        "a flag is a bool"
+    );
+    c.set("lr_sh", Value::Real(f64::NAN)).unwrap();
+    let nan = c.validate().unwrap_err();
+    assert!(nan.contains("lr_sh must be finite"), "{nan}");
 }
 
 #[test]
@@ -97,7 +93,7 @@ fn growth_from_keyframes_respects_the_cap() {
     cfg.densify.max_gaussians = 1000;
     let mut m = Mapper::new(cfg).unwrap();
     let (rgb, depth, k) = wall(64, 48);
-    let (_, added) = m.add_keyframe(rgb, depth, k, EYE).unwrap();
+    let (_, added) = m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
     assert_eq!(added, 1000);
     assert_eq!(m.map.len(), 1000);
     // kept rows are spread over the whole view, not its top rows only
@@ -126,7 +122,7 @@ fn features_trained_at_a_coarser_level_learn_the_target() {
         cfg.adam.lr.features = 0.02;
         let mut m = Mapper::new(cfg).unwrap();
         let (rgb, depth, k) = wall(64, 48);
-        let (id, _) = m.add_keyframe(rgb, depth, k, EYE).unwrap();
+        let (id, _) = m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
         // 8x6 grid: left half (1,0,0,0), right half (0,1,0,0)
         let data: Vec<Real> = (0..48)
             .flat_map(|c| {
@@ -152,7 +148,7 @@ fn features_trained_at_a_coarser_level_learn_the_target() {
             first > 0.2 && last < 0.25 * first,
             "offset {offset}: {first} -> {last}"
         );
-        let r = m.render(&EYE, k, true).unwrap();
+        let r = m.render(&Pose::identity(), k, true).unwrap();
         for (x, y) in [(8, 24), (56, 24)] {
             let p = y * 64 + x;
             let (a, b) = (&r.features[p * 4..][..4], &target[p * 4..][..4]);
@@ -180,7 +176,7 @@ fn training_windows_choose_which_keyframes_are_trained() {
     let mut m = Mapper::new(cfg).unwrap();
     for _ in 0..3 {
         let (rgb, depth, k) = wall(32, 24);
-        m.add_keyframe(rgb, depth, k, EYE).unwrap();
+        m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
     }
     let uses = |m: &Mapper| m.keyframes.iter().map(|k| k.uses).collect::<Vec<_>>();
     m.train(2).unwrap();
@@ -195,8 +191,8 @@ fn training_windows_choose_which_keyframes_are_trained() {
 /// never moves itself (it anchors the map).
 #[test]
 fn keyframe_poses_are_refined_towards_the_view_they_show() {
-    use legslam_core::track::se3;
-    use nalgebra::{Matrix4, Vector6};
+    use legslam_core::camera::se3;
+    use nalgebra::Vector6;
 
     let mut cfg = MapperConfig {
         finest_level: 0,
@@ -208,18 +204,18 @@ fn keyframe_poses_are_refined_towards_the_view_they_show() {
     cfg.densify.interval = 0;
     let mut m = Mapper::new(cfg).unwrap();
     let (rgb, depth, k) = wall(64, 48);
-    m.add_keyframe(rgb.clone(), depth.clone(), k, EYE).unwrap();
+    m.add_keyframe(rgb.clone(), depth.clone(), k, Pose::identity())
+        .unwrap();
     // A map that reproduces the view first (freshly grown splats render it a little shifted).
     m.train(200).unwrap();
     let off = se3::exp(&Vector6::new(0.04, -0.02, 0.0, 0.0, 0.0, 0.026));
     m.config.grow.alpha_threshold = 0.0; // the second keyframe adds no Gaussians
     m.config.grow.depth_tolerance = 1e9;
     m.config.grow.occluded_tolerance = 1e9;
-    let pose = std::array::from_fn(|i| std::array::from_fn(|j| off[(i, j)]));
-    let (_, added) = m.add_keyframe(rgb, depth, k, pose).unwrap();
+    let (_, added) = m.add_keyframe(rgb, depth, k, off).unwrap();
     assert_eq!(added, 0);
     let error = |m: &Mapper, i: usize| {
-        let e = se3::log(&Matrix4::from_fn(|r, c| m.keyframes[i].pose[r][c]));
+        let e = se3::log(&m.keyframes[i].pose);
         (e.fixed_rows::<3>(0).norm(), e.fixed_rows::<3>(3).norm())
     };
     let (t0, r0) = error(&m, 1);
@@ -229,7 +225,11 @@ fn keyframe_poses_are_refined_towards_the_view_they_show() {
         t1 < 0.25 * t0 && r1 < 0.25 * r0,
         "translation {t0} -> {t1}, rotation {r0} -> {r1}"
     );
-    assert_eq!(m.keyframes[0].pose, EYE, "the first keyframe moved");
+    assert_eq!(
+        m.keyframes[0].pose,
+        Pose::identity(),
+        "the first keyframe moved"
+    );
     assert_eq!(m.keyframes[0].pose_adam.steps(), 0);
     assert!(m.keyframes[1].pose_adam.steps() > 100);
 }
@@ -248,7 +248,7 @@ fn a_share_of_iterations_revisits_older_keyframes() {
     let mut m = Mapper::new(cfg).unwrap();
     for _ in 0..4 {
         let (rgb, depth, k) = wall(32, 24);
-        m.add_keyframe(rgb, depth, k, EYE).unwrap();
+        m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
     }
     m.train(80).unwrap();
     let uses: Vec<usize> = m.keyframes.iter().map(|k| k.uses).collect();

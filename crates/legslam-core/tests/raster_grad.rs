@@ -135,14 +135,8 @@ fn perturb_pose(s: &Scene, axis: usize, h: f64) -> Scene {
     d[(0, 3)] = xi[0];
     d[(1, 3)] = xi[1];
     d[(2, 3)] = xi[2];
-    let t = Matrix4::from_fn(|i, j| s.w2c[i][j]);
-    let m = d * t;
     let mut out = s.clone();
-    for i in 0..4 {
-        for j in 0..4 {
-            out.w2c[i][j] = m[(i, j)];
-        }
-    }
+    out.w2c = d * s.w2c;
     out
 }
 

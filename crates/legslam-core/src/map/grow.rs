@@ -5,7 +5,9 @@
 use super::features::FeatureGrid;
 use super::keyframe::Level;
 use super::store::{GaussianMap, NewGaussian};
-use crate::camera::{transform_point, Pose};
+use nalgebra::Vector3;
+
+use crate::camera::{se3, Pose};
 use crate::raster::sh;
 use crate::Real;
 
@@ -95,12 +97,12 @@ pub fn grow(
                 }
             }
             let zc = z as f64;
-            let pc = [
+            let pc = Vector3::new(
                 (x as f64 - k.cx) * zc / k.fx,
                 (y as f64 - k.cy) * zc / k.fy,
                 zc,
-            ];
-            let pw = transform_point(pose, pc);
+            );
+            let pw = se3::transform_point(pose, &pc);
             let footprint = zc * stride as f64 / (0.5 * (k.fx + k.fy));
             let log_scale = (footprint * cfg.scale as f64).ln() as Real;
             for (s, c) in sh_row.iter_mut().zip(&level.rgb[p * 3..p * 3 + 3]) {
@@ -112,7 +114,7 @@ pub fn grow(
                     .sample(x as Real, y as Real, w, h, &mut feat);
             }
             map.push(NewGaussian {
-                mean: pw.map(|v| v as Real),
+                mean: [pw.x as Real, pw.y as Real, pw.z as Real],
                 log_scale: [log_scale; 3],
                 quat: [1.0, 0.0, 0.0, 0.0],
                 opacity_logit: logit,
@@ -135,7 +137,7 @@ pub fn assign_features(
     grid: &FeatureGrid,
 ) {
     let k = &level.intrinsics;
-    let w2c = crate::camera::invert_rigid(pose);
+    let w2c = se3::inverse(pose);
     let kf = map.num_features;
     if grid.k != kf || kf == 0 {
         return;
@@ -145,12 +147,12 @@ pub fn assign_features(
             continue;
         }
         let m = &map.means[3 * i..3 * i + 3];
-        let pc = transform_point(&w2c, [m[0] as f64, m[1] as f64, m[2] as f64]);
-        if pc[2] <= 0.0 {
+        let pc = se3::transform_point(&w2c, &Vector3::new(m[0] as f64, m[1] as f64, m[2] as f64));
+        if pc.z <= 0.0 {
             continue;
         }
-        let u = (k.fx * pc[0] / pc[2] + k.cx).clamp(0.0, (k.width - 1) as f64);
-        let v = (k.fy * pc[1] / pc[2] + k.cy).clamp(0.0, (k.height - 1) as f64);
+        let u = (k.fx * pc.x / pc.z + k.cx).clamp(0.0, (k.width - 1) as f64);
+        let v = (k.fy * pc.y / pc.z + k.cy).clamp(0.0, (k.height - 1) as f64);
         grid.sample(
             u as Real,
             v as Real,

@@ -53,7 +53,7 @@ impl Keyframe {
                 depth.len()
             ));
         }
-        if pose.iter().flatten().any(|v| !v.is_finite()) {
+        if pose.iter().any(|v| !v.is_finite()) {
             return Err("the keyframe pose has a non-finite entry".into());
         }
         let depth = depth
@@ -140,13 +140,7 @@ mod tests {
         let mut depth = vec![2.0; 16];
         depth[0] = 0.0; // invalid: the block's mean is over the three valid pixels
         depth[1] = 5.0;
-        let eye = [
-            [1.0, 0.0, 0.0, 0.0],
-            [0.0, 1.0, 0.0, 0.0],
-            [0.0, 0.0, 1.0, 0.0],
-            [0.0, 0.0, 0.0, 1.0],
-        ];
-        let kf = Keyframe::new(0, rgb.clone(), depth, k, eye, 3).unwrap();
+        let kf = Keyframe::new(0, rgb.clone(), depth, k, Pose::identity(), 3).unwrap();
         assert_eq!(kf.levels.len(), 3);
         let l1 = &kf.levels[1];
         assert_eq!((l1.intrinsics.width, l1.intrinsics.height), (2, 2));
@@ -166,7 +160,7 @@ mod tests {
             width: 2,
             height: 2,
         };
-        let eye = [[0.0; 4]; 4];
+        let eye = Pose::identity();
         assert!(Keyframe::new(0, vec![0.0; 11], vec![0.0; 4], k, eye, 1).is_err());
     }
 }

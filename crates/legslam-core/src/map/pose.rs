@@ -2,11 +2,10 @@
 //! Adam along the rasterizer's pose gradient (a left twist of the world-to-camera pose), so
 //! that keyframes the tracker placed slightly apart become photometrically consistent.
 
-use nalgebra::{Matrix4, Vector6};
+use nalgebra::Vector6;
 
-use crate::camera::{invert_rigid, Pose};
+use crate::camera::{se3, Pose};
 use crate::optim::SmallAdam;
-use crate::track::se3;
 use crate::Real;
 
 /// Adam state of one keyframe's pose (translation first, as the twist).
@@ -18,8 +17,6 @@ pub type PoseAdam = SmallAdam<6>;
 pub fn step_pose(adam: &mut PoseAdam, pose: &Pose, grad: &[Real; 6], lr: [f64; 2]) -> Pose {
     let g = grad.map(f64::from);
     let delta = adam.step(&g, &[lr[0], lr[0], lr[0], lr[1], lr[1], lr[1]]);
-    let w2c = Matrix4::from_fn(|i, j| invert_rigid(pose)[i][j]);
-    let moved = se3::orthonormalize(&(se3::exp(&Vector6::from(delta)) * w2c));
-    let c2w = se3::inverse(&moved);
-    std::array::from_fn(|i| std::array::from_fn(|j| c2w[(i, j)]))
+    let moved = se3::exp(&Vector6::from(delta)) * se3::inverse(pose);
+    se3::inverse(&se3::orthonormalize(&moved))
 }

@@ -11,7 +11,7 @@ use super::grow::{assign_features, grow, GrowConfig, RenderedView};
 use super::pose::step_pose;
 use super::prune::{keep_mask, PruneConfig};
 use super::{FeatureGrid, GaussianMap, Keyframe};
-use crate::camera::{invert_rigid, Intrinsics, Pose};
+use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
     DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
 };
@@ -88,6 +88,35 @@ impl Default for MapperConfig {
     }
 }
 
+impl MapperConfig {
+    /// Checks the options' values; the message names the offending one.
+    pub fn validate(&self) -> Result<(), String> {
+        crate::options::check_finite("mapper", self)?;
+        if self.sh_degree > 3 {
+            return Err(format!("sh_degree must be 0-3, got {}", self.sh_degree));
+        }
+        if self.finest_level >= self.levels.max(1) || self.grow_level >= self.levels.max(1) {
+            return Err(format!(
+                "finest_level ({}) and grow_level ({}) must be below levels ({})",
+                self.finest_level, self.grow_level, self.levels
+            ));
+        }
+        for (name, lr) in [
+            ("pose_lr_translation", self.pose_lr_translation),
+            ("pose_lr_rotation", self.pose_lr_rotation),
+            ("exposure_lr", self.exposure_lr),
+        ] {
+            if !(lr.is_finite() && lr >= 0.0) {
+                return Err(format!("{name} must be finite and >= 0, got {lr}"));
+            }
+        }
+        if !(0.0..=1.0).contains(&self.revisit) {
+            return Err(format!("revisit must lie in [0, 1], got {}", self.revisit));
+        }
+        Ok(())
+    }
+}
+
 /// What `train` did.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct TrainReport {
@@ -135,36 +164,12 @@ struct Scratch {
 }
 
 fn camera(pose: &Pose, intr: Intrinsics) -> Result<Camera, String> {
-    Camera::new(intr, &invert_rigid(pose))
+    Camera::new(intr, &se3::inverse(pose))
 }
 
 impl Mapper {
     pub fn new(config: MapperConfig) -> Result<Self, String> {
-        if config.sh_degree > 3 {
-            return Err(format!("sh_degree must be 0-3, got {}", config.sh_degree));
-        }
-        if config.finest_level >= config.levels.max(1) || config.grow_level >= config.levels.max(1)
-        {
-            return Err(format!(
-                "finest_level ({}) and grow_level ({}) must be below levels ({})",
-                config.finest_level, config.grow_level, config.levels
-            ));
-        }
-        for (name, lr) in [
-            ("pose_lr_translation", config.pose_lr_translation),
-            ("pose_lr_rotation", config.pose_lr_rotation),
-            ("exposure_lr", config.exposure_lr),
-        ] {
-            if !(lr.is_finite() && lr >= 0.0) {
-                return Err(format!("{name} must be finite and >= 0, got {lr}"));
-            }
-        }
-        if !(0.0..=1.0).contains(&config.revisit) {
-            return Err(format!(
-                "revisit must lie in [0, 1], got {}",
-                config.revisit
-            ));
-        }
+        config.validate()?;
         let coeffs = crate::raster::sh::num_coeffs(config.sh_degree);
         let adam = Adam::new(config.adam, 0, coeffs, config.num_features)?;
         Ok(Mapper {
@@ -288,7 +293,7 @@ impl Mapper {
         let centres: Vec<[f64; 3]> = self
             .keyframes
             .iter()
-            .map(|k| [k.pose[0][3], k.pose[1][3], k.pose[2][3]])
+            .map(|k| se3::translation(&k.pose).into())
             .collect();
         let n = centres.len() as f64;
         let mean = [0, 1, 2].map(|a| centres.iter().map(|c| c[a]).sum::<f64>() / n);
@@ -576,111 +581,44 @@ fn add_grads(into: &mut Gradients, from: &Gradients) {
     }
 }
 
-/// An option's value as the f64 that configuration files and bindings exchange.
-trait OptionValue {
-    fn to_f64(self) -> f64;
-}
-
-macro_rules! numeric_option {
-    ($($t:ty),*) => {$(impl OptionValue for $t {
-        fn to_f64(self) -> f64 {
-            self as f64
-        }
-    })*};
-}
-numeric_option!(usize, u64, f32, f64);
-
-impl OptionValue for bool {
-    fn to_f64(self) -> f64 {
-        f64::from(u8::from(self))
-    }
-}
-
-/// Every option of [`MapperConfig`] by name, for configuration files and bindings: one table,
-/// so that reading and listing options cannot drift apart.
-macro_rules! options {
-    ($($name:literal => $($field:ident).+ : $ty:ident),* $(,)?) => {
-        impl MapperConfig {
-            /// (name, value) of every option.
-            pub fn entries(&self) -> Vec<(&'static str, f64)> {
-                vec![$(($name, OptionValue::to_f64(self.$($field).+))),*]
-            }
-
-            /// Sets one option by name; integers must be whole and non-negative.
-            pub fn set(&mut self, name: &str, value: f64) -> Result<(), String> {
-                if !value.is_finite() {
-                    return Err(format!("mapper option {name} must be finite, got {value}"));
-                }
-                match name {
-                    $($name => { self.$($field).+ = options!(@conv $ty, name, value)?; })*
-                    _ => return Err(format!(
-                        "unknown mapper option {name:?}; known: {}",
-                        [$($name),*].join(", ")
-                    )),
-                }
-                Ok(())
-            }
-        }
-    };
-    (@conv usize, $name:ident, $v:ident) => {
-        if $v >= 0.0 && $v.fract() == 0.0 {
-            Ok($v as usize)
-        } else {
-            Err(format!("mapper option {} must be a whole number >= 0, got {}", $name, $v))
-        }
-    };
-    (@conv u64, $name:ident, $v:ident) => {
-        options!(@conv usize, $name, $v).map(|v| v as u64)
-    };
-    (@conv bool, $name:ident, $v:ident) => {
-        match $v {
-            0.0 => Ok(false),
-            1.0 => Ok(true),
-            _ => Err(format!("mapper option {} must be 0 or 1 (or a boolean), got {}", $name, $v)),
-        }
-    };
-    (@conv Real, $name:ident, $v:ident) => {
-        Ok::<Real, String>($v as Real)
-    };
-}
-
-options! {
-    "levels" => levels: usize,
-    "finest_level" => finest_level: usize,
-    "uses_per_level" => uses_per_level: usize,
-    "feature_level_offset" => feature_level_offset: usize,
-    "window" => window: usize,
-    "revisit" => revisit: Real,
-    "grow_level" => grow_level: usize,
-    "sh_degree" => sh_degree: usize,
-    "num_features" => num_features: usize,
-    "seed" => seed: u64,
-    "loss_color" => loss.color: Real,
-    "loss_ssim_lambda" => loss.ssim_lambda: Real,
-    "loss_depth" => loss.depth: Real,
-    "loss_feature" => loss.feature: Real,
-    "lr_means" => adam.lr.means: Real,
-    "lr_log_scales" => adam.lr.log_scales: Real,
-    "lr_quats" => adam.lr.quats: Real,
-    "lr_opacity" => adam.lr.opacity_logits: Real,
-    "lr_sh" => adam.lr.sh: Real,
-    "lr_features" => adam.lr.features: Real,
-    "adam_sparse" => adam.sparse: bool,
-    "grow_stride" => grow.stride: usize,
-    "grow_alpha_threshold" => grow.alpha_threshold: Real,
-    "grow_depth_tolerance" => grow.depth_tolerance: Real,
-    "grow_occluded_tolerance" => grow.occluded_tolerance: Real,
-    "grow_opacity" => grow.opacity: Real,
-    "grow_scale" => grow.scale: Real,
-    "depth_min" => grow.depth_min: Real,
-    "depth_max" => grow.depth_max: Real,
-    "prune_min_opacity" => prune.min_opacity: Real,
-    "prune_max_world_scale" => prune.max_world_scale: Real,
-    "densify_interval" => densify.interval: usize,
-    "densify_grad_threshold" => densify.grad_threshold: Real,
-    "densify_split_scale" => densify.split_scale: Real,
-    "max_gaussians" => densify.max_gaussians: usize,
-    "pose_lr_translation" => pose_lr_translation: Real,
-    "pose_lr_rotation" => pose_lr_rotation: Real,
-    "exposure_lr" => exposure_lr: Real,
-}
+// Every option of [`MapperConfig`] by name (see [`crate::options`]).
+crate::options!(MapperConfig, "mapper", {
+    "levels" => levels,
+    "finest_level" => finest_level,
+    "uses_per_level" => uses_per_level,
+    "feature_level_offset" => feature_level_offset,
+    "window" => window,
+    "revisit" => revisit,
+    "grow_level" => grow_level,
+    "sh_degree" => sh_degree,
+    "num_features" => num_features,
+    "seed" => seed,
+    "loss_color" => loss.color,
+    "loss_ssim_lambda" => loss.ssim_lambda,
+    "loss_depth" => loss.depth,
+    "loss_feature" => loss.feature,
+    "lr_means" => adam.lr.means,
+    "lr_log_scales" => adam.lr.log_scales,
+    "lr_quats" => adam.lr.quats,
+    "lr_opacity" => adam.lr.opacity_logits,
+    "lr_sh" => adam.lr.sh,
+    "lr_features" => adam.lr.features,
+    "adam_sparse" => adam.sparse,
+    "grow_stride" => grow.stride,
+    "grow_alpha_threshold" => grow.alpha_threshold,
+    "grow_depth_tolerance" => grow.depth_tolerance,
+    "grow_occluded_tolerance" => grow.occluded_tolerance,
+    "grow_opacity" => grow.opacity,
+    "grow_scale" => grow.scale,
+    "depth_min" => grow.depth_min,
+    "depth_max" => grow.depth_max,
+    "prune_min_opacity" => prune.min_opacity,
+    "prune_max_world_scale" => prune.max_world_scale,
+    "densify_interval" => densify.interval,
+    "densify_grad_threshold" => densify.grad_threshold,
+    "densify_split_scale" => densify.split_scale,
+    "max_gaussians" => densify.max_gaussians,
+    "pose_lr_translation" => pose_lr_translation,
+    "pose_lr_rotation" => pose_lr_rotation,
+    "exposure_lr" => exposure_lr,
+});

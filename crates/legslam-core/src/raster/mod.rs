@@ -21,7 +21,7 @@ pub use backward::{backward, backward_into, BackwardScratch};
 pub use config::{RasterConfig, TILE};
 pub use forward::render;
 
-use crate::camera::Intrinsics;
+use crate::camera::{Intrinsics, Pose};
 use crate::Real;
 use math::{mat3_rows, M3, V3};
 
@@ -109,20 +109,20 @@ pub struct Camera {
 }
 
 impl Camera {
-    /// A camera from intrinsics and a 4x4 world-to-camera matrix (row-major).
-    pub fn new(intrinsics: Intrinsics, world_to_camera: &[[f64; 4]; 4]) -> Result<Self, String> {
+    /// A camera from intrinsics and its world-to-camera pose.
+    pub fn new(intrinsics: Intrinsics, world_to_camera: &Pose) -> Result<Self, String> {
         intrinsics.validate()?;
         let m = world_to_camera;
-        if m.iter().flatten().any(|v| !v.is_finite()) {
+        if m.iter().any(|v| !v.is_finite()) {
             return Err("the camera pose has a non-finite entry".into());
         }
-        if m[3] != [0.0, 0.0, 0.0, 1.0] {
+        let last = [m[(3, 0)], m[(3, 1)], m[(3, 2)], m[(3, 3)]];
+        if last != [0.0, 0.0, 0.0, 1.0] {
             return Err(format!(
-                "the camera pose's last row must be [0, 0, 0, 1], got {:?}",
-                m[3]
+                "the camera pose's last row must be [0, 0, 0, 1], got {last:?}"
             ));
         }
-        let row = |i: usize| V3::new(m[i][0] as Real, m[i][1] as Real, m[i][2] as Real);
+        let row = |i: usize| V3::new(m[(i, 0)] as Real, m[(i, 1)] as Real, m[(i, 2)] as Real);
         let rotation = mat3_rows(row(0), row(1), row(2));
         let off = (rotation * rotation.transpose() - M3::IDENTITY)
             .to_cols_array()
@@ -133,7 +133,7 @@ impl Camera {
                 "the camera pose's rotation is not a rotation (|R R^T - I| = {off})"
             ));
         }
-        let translation = V3::new(m[0][3] as Real, m[1][3] as Real, m[2][3] as Real);
+        let translation = V3::new(m[(0, 3)] as Real, m[(1, 3)] as Real, m[(2, 3)] as Real);
         Ok(Camera {
             intrinsics,
             rotation,

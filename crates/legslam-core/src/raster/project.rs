@@ -380,7 +380,7 @@ pub(crate) fn backward_one(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::Intrinsics;
+    use crate::camera::{Intrinsics, Pose};
     use crate::rng::Rng;
 
     /// The cheap bound contains the exact extent of every Gaussian the full projection keeps,
@@ -416,12 +416,13 @@ mod tests {
         };
         let intr = Intrinsics::from_array([300.0, 310.0, 159.5, 119.5], 320, 240);
         let a = 0.3f64;
-        let w2c = [
-            [a.cos(), 0.0, a.sin(), 0.1],
-            [0.0, 1.0, 0.0, -0.2],
-            [-a.sin(), 0.0, a.cos(), 0.3],
-            [0.0, 0.0, 0.0, 1.0],
-        ];
+        #[rustfmt::skip]
+        let w2c = Pose::new(
+            a.cos(), 0.0, a.sin(), 0.1,
+            0.0, 1.0, 0.0, -0.2,
+            -a.sin(), 0.0, a.cos(), 0.3,
+            0.0, 0.0, 0.0, 1.0,
+        );
         let cam = Camera::new(intr, &w2c).unwrap();
         let cfg = RasterConfig::default();
         let pin = Pinhole::new(&cam, &cfg);

@@ -4,12 +4,11 @@
 //! averaging, so its intrinsics follow the pixel-centre convention of `cv2.resize`
 //! (`f' = f/2`, `c' = (c + 0.5)/2 - 0.5`).
 
-use nalgebra::Matrix4;
 use rayon::prelude::*;
 
-use super::se3;
 use super::TrackerConfig;
 use crate::camera::Intrinsics;
+use crate::camera::{se3, Pose};
 
 /// Colour input of a view: interleaved RGB, row-major, `height * width * 3` values.
 #[derive(Clone, Copy, Debug)]
@@ -127,7 +126,7 @@ pub struct Frame {
 #[derive(Clone, Debug)]
 pub struct Reference {
     pub(crate) frame: Frame,
-    pub(crate) pose: Matrix4<f64>,
+    pub(crate) pose: Pose,
     /// Per level (empty below the finest used level): `(I, dI/dx, dI/dy, depth)` per pixel.
     pub(crate) igd: Vec<Vec<[f32; 4]>>,
     /// Per level: unit normal in the reference camera frame facing the camera, `w = 1` if
@@ -313,7 +312,7 @@ impl Reference {
         color: Color<'_>,
         depth: &[f32],
         k: &Intrinsics,
-        pose: &Matrix4<f64>,
+        pose: &Pose,
         config: &TrackerConfig,
     ) -> Result<Reference, String> {
         let frame = Frame::new(color, depth, k, config)?;
@@ -324,7 +323,7 @@ impl Reference {
     /// the frame just tracked in frame-to-frame odometry, at its estimated pose.
     pub fn from_frame(
         frame: Frame,
-        pose: &Matrix4<f64>,
+        pose: &Pose,
         config: &TrackerConfig,
     ) -> Result<Reference, String> {
         config.validate()?;
@@ -353,7 +352,7 @@ impl Reference {
     }
 
     /// The reference pose `T_wr` (camera-to-world).
-    pub fn pose(&self) -> &Matrix4<f64> {
+    pub fn pose(&self) -> &Pose {
         &self.pose
     }
 

@@ -9,7 +9,7 @@
 //!
 //! each Huber-weighted, coarse-to-fine over an image pyramid, with the 6x6 normal equations
 //! reduced in parallel (rayon, deterministic for any thread count) and solved with nalgebra.
-//! See [`solve`] for the residuals and [`se3`] for the twist convention (`xi = (v, w)`,
+//! See [`solve`] for the residuals and [`crate::camera::se3`] for the twist convention (`xi = (v, w)`,
 //! translation first, left perturbation `T <- exp(delta) T`).
 //!
 //! Poses at the API are `f64` 4x4 camera-to-world (`T_wc`), OpenCV camera axes.
@@ -21,14 +21,13 @@
 //! [`Odometry`] chains frame-to-frame tracking with a constant-velocity motion prior.
 
 mod image;
-pub mod se3;
 mod solve;
 
 pub use image::{Color, Frame, Reference};
-/// Re-exported so that users (and the Python bindings) need no direct nalgebra dependency.
-pub use nalgebra::Matrix4;
 
 use nalgebra::{Matrix6, SymmetricEigen, Vector6};
+
+use crate::camera::{se3, Pose};
 
 use solve::{accumulate, Params, RefLevel, Sums};
 
@@ -110,6 +109,7 @@ impl Default for TrackerConfig {
 impl TrackerConfig {
     /// Checks every field; the message names the offending one.
     pub fn validate(&self) -> Result<(), String> {
+        crate::options::check_finite("tracker", self)?;
         if self.levels == 0 || self.levels > 8 {
             return Err(format!("levels must be 1..=8, got {}", self.levels));
         }
@@ -166,12 +166,34 @@ impl TrackerConfig {
     }
 }
 
+// Every option of [`TrackerConfig`] by name (see [`crate::options`]).
+crate::options!(TrackerConfig, "tracker", {
+    "levels" => levels,
+    "finest_level" => finest_level,
+    "iterations" => iterations,
+    "min_depth" => min_depth,
+    "max_depth" => max_depth,
+    "max_depth_diff" => max_depth_diff,
+    "geometric_huber" => geometric_huber,
+    "photometric_huber" => photometric_huber,
+    "photometric_weight" => photometric_weight,
+    "estimate_gain" => estimate_gain,
+    "min_gradient" => min_gradient,
+    "convergence_eps" => convergence_eps,
+    "inlier_threshold" => inlier_threshold,
+    "min_inlier_ratio" => min_inlier_ratio,
+    "min_inliers" => min_inliers,
+    "max_condition" => max_condition,
+    "max_translation" => max_translation,
+    "max_rotation_deg" => max_rotation_deg,
+});
+
 /// The outcome of one alignment.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TrackResult {
     /// Estimated camera-to-world pose of the frame. When `lost`, the best estimate found
     /// (or the initial guess if no estimate could be made) that should not be trusted.
-    pub pose: Matrix4<f64>,
+    pub pose: Pose,
     /// RMS of the Huber-normalised joint residual (dimensionless), at the last iteration.
     pub residual_rms: f64,
     /// RMS point-to-plane distance of the inliers (m).
@@ -201,7 +223,7 @@ pub struct TrackResult {
 pub fn track(
     reference: &Reference,
     frame: &Frame,
-    init: &Matrix4<f64>,
+    init: &Pose,
     config: &TrackerConfig,
 ) -> Result<TrackResult, String> {
     config.validate()?;
@@ -352,7 +374,7 @@ fn finite_or(v: f64, d: f64) -> f64 {
     }
 }
 
-fn to_f32(t: &Matrix4<f64>) -> ([[f32; 3]; 3], [f32; 3]) {
+fn to_f32(t: &Pose) -> ([[f32; 3]; 3], [f32; 3]) {
     let mut r = [[0.0f32; 3]; 3];
     for (i, row) in r.iter_mut().enumerate() {
         for (j, v) in row.iter_mut().enumerate() {
@@ -411,9 +433,9 @@ fn condition_number(h: &Matrix6<f64>, s: &Sums) -> f64 {
 pub struct OdometryStep {
     /// Pose assigned to the frame (camera-to-world): the tracked pose, or the
     /// constant-velocity prediction when tracking was lost.
-    pub pose: Matrix4<f64>,
+    pub pose: Pose,
     /// The constant-velocity prediction used as the initial guess.
-    pub predicted: Matrix4<f64>,
+    pub predicted: Pose,
     /// The alignment (`None` for the first frame).
     pub result: Option<TrackResult>,
 }
@@ -426,8 +448,8 @@ pub struct Odometry {
     config: TrackerConfig,
     motion_prior: bool,
     reference: Option<Reference>,
-    pose: Matrix4<f64>,
-    velocity: Matrix4<f64>,
+    pose: Pose,
+    velocity: Pose,
     frames: usize,
     lost: usize,
 }
@@ -437,7 +459,7 @@ impl Odometry {
     /// constant-velocity prediction on (otherwise the previous pose is the guess).
     pub fn new(
         config: TrackerConfig,
-        initial_pose: &Matrix4<f64>,
+        initial_pose: &Pose,
         motion_prior: bool,
     ) -> Result<Odometry, String> {
         config.validate()?;
@@ -447,7 +469,7 @@ impl Odometry {
             motion_prior,
             reference: None,
             pose: se3::orthonormalize(initial_pose),
-            velocity: Matrix4::identity(),
+            velocity: Pose::identity(),
             frames: 0,
             lost: 0,
         })
@@ -500,7 +522,7 @@ impl Odometry {
     }
 
     /// Pose of the last frame.
-    pub fn pose(&self) -> &Matrix4<f64> {
+    pub fn pose(&self) -> &Pose {
         &self.pose
     }
 }

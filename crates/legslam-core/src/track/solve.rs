@@ -11,7 +11,7 @@
 //!   interpolated; Jacobian `[g, X x g]` with `g = (gx fx / z, gy fy / z,
 //!   -(gx fx x + gy fy y) / z^2)`.
 //!
-//! Both use the left perturbation `T_rf <- exp(delta) T_rf` of [`super::se3`].
+//! Both use the left perturbation `T_rf <- exp(delta) T_rf` of [`crate::camera::se3`].
 
 use rayon::prelude::*;
 

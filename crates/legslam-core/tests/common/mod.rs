@@ -1,7 +1,7 @@
 //! Shared by the rasterizer tests: random scenes and a plain per-pixel reference renderer.
 #![allow(dead_code)]
 
-use legslam_core::camera::Intrinsics;
+use legslam_core::camera::{se3, Intrinsics, Pose};
 use legslam_core::raster::{sh, Camera, Gaussians, RasterConfig};
 use legslam_core::Real;
 use nalgebra::{Matrix2, Matrix3, Quaternion, Rotation3, UnitQuaternion, Vector3};
@@ -20,7 +20,7 @@ pub struct Scene {
     pub k: usize,
     pub intr: Intrinsics,
     /// World-to-camera.
-    pub w2c: [[f64; 4]; 4],
+    pub w2c: Pose,
 }
 
 impl Scene {
@@ -68,11 +68,7 @@ impl Scene {
     }
 
     fn rt(&self) -> (Matrix3<f64>, Vector3<f64>) {
-        let m = &self.w2c;
-        (
-            Matrix3::from_fn(|i, j| m[i][j]),
-            Vector3::new(m[0][3], m[1][3], m[2][3]),
-        )
+        (se3::rotation(&self.w2c), se3::translation(&self.w2c))
     }
 }
 
@@ -94,14 +90,7 @@ pub fn empty_scene(
         rng.uniform(-1., 1.),
         rng.uniform(-1., 1.),
     );
-    let mut w2c = [[0.0; 4]; 4];
-    for i in 0..3 {
-        for j in 0..3 {
-            w2c[i][j] = rot[(i, j)];
-        }
-        w2c[i][3] = t[i];
-    }
-    w2c[3][3] = 1.0;
+    let w2c = se3::from_rt(rot.matrix(), &t);
     let f = 0.9 * width as f64;
     Scene {
         means: vec![],

@@ -1,4 +1,5 @@
-//! SE(3) exponential and logarithm for the tracker.
+//! SE(3) algebra of [`super::Pose`]: exponential and logarithm, rigid inverse, and the checks
+//! shared by the tracker, the mapper's pose refinement and the pose graph.
 //!
 //! **Twist convention.** A twist is `xi = (v, w)` in R^6, *translation first*:
 //! `v = xi[0..3]` (metres), `w = xi[3..6]` (axis-angle, radians). Its hat is the 4x4 matrix
@@ -78,6 +79,11 @@ pub fn inverse(t: &Matrix4<f64>) -> Matrix4<f64> {
     from_rt(&rt, &(-(rt * translation(t))))
 }
 
+/// `t` applied to the point `p` (a rigid transform: no homogeneous division).
+pub fn transform_point(t: &Matrix4<f64>, p: &Vector3<f64>) -> Vector3<f64> {
+    rotation(t) * p + translation(t)
+}
+
 /// The rotation block.
 pub fn rotation(t: &Matrix4<f64>) -> Matrix3<f64> {
     t.fixed_view::<3, 3>(0, 0).into_owned()
@@ -149,7 +155,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn track_se3_exp_log_round_trip() {
+    fn se3_exp_log_round_trip() {
         let cases = [
             Vector6::new(0.1, -0.2, 0.3, 0.01, 0.02, -0.03),
             Vector6::new(1.0, 2.0, -3.0, 1.0, -0.5, 2.0),
@@ -164,11 +170,14 @@ mod tests {
             let r = rotation(&t);
             assert!((r.transpose() * r - Matrix3::identity()).norm() < 1e-12);
             assert!((inverse(&t) * t - Matrix4::identity()).norm() < 1e-12);
+            let p = Vector3::new(0.2, -0.7, 3.0);
+            let q = transform_point(&inverse(&t), &transform_point(&t, &p));
+            assert!((p - q).norm() < 1e-12);
         }
     }
 
     #[test]
-    fn track_se3_exp_matches_series_and_left_perturbation() {
+    fn se3_exp_matches_series_and_left_perturbation() {
         // exp(xi) equals the matrix exponential of hat(xi) (power series).
         let xi = Vector6::new(0.3, -0.1, 0.2, 0.4, -0.3, 0.2);
         let mut hat = Matrix4::zeros();
