@@ -117,7 +117,7 @@ def test_pose_translation_gradient_is_minus_the_sum_over_means():
 @pytest.mark.parametrize("change, message", [
     (dict(means=np.zeros((40, 2))), "means must have shape Nx3"),
     (dict(log_scales=np.zeros((39, 3))), "log_scales must have shape 40x3"),
-    (dict(quats=np.zeros((40, 4), bool)), "quats must be a numeric"),
+    (dict(quats=np.zeros((40, 4), bool)), "quats must be a float32 array, got dtype bool"),
     (dict(quats=np.tile([2.0, 0, 0, 0], (40, 1))), "unit quaternions"),
     (dict(features=np.zeros((39, 6))), "features must have shape 40xN"),
     (dict(sh=np.zeros((40, 5, 3))), "1, 4, 9 or 16 coefficients"),
@@ -137,9 +137,9 @@ def test_nan_is_named():
 
 def test_bad_camera_and_gradients_raise_value_error():
     g = scene()
-    with pytest.raises(ValueError, match="pose must be a 4x4"):
+    with pytest.raises(ValueError, match="pose must have shape 4x4"):
         legslam.render(**g, K=K, pose=np.eye(3), width=W, height=H)
-    with pytest.raises(ValueError, match="not a rotation"):
+    with pytest.raises(ValueError, match="pose rotation must be orthonormal"):
         legslam.render(**g, K=K, pose=np.diag([2.0, 1, 1, 1]), width=W, height=H)
     with pytest.raises(ValueError, match="focal lengths must be positive"):
         legslam.render(**g, K=np.diag([-1.0, 1, 1]), pose=np.eye(4), width=W, height=H)

@@ -7,6 +7,8 @@
 
 Poses are camera-to-world 4x4 (OpenCV axes). The pose gradient is with respect to the twist
 xi = (rho, phi) of a left perturbation of the *world-to-camera* pose, T_cw <- exp(xi^) T_cw.
+
+`feature_rgb` shows a rendered feature map as colour (its first three principal directions).
 """
 
 from __future__ import annotations
@@ -15,51 +17,30 @@ import numpy as np
 
 from . import _core
 
-__all__ = ["render", "Render"]
+__all__ = ["render", "Render", "feature_rgb", "feature_basis"]
 
 
-def _floats(name: str, a, shape: tuple) -> np.ndarray:
-    """`a` as a C-contiguous float32 array of `shape` (None = any size), or ValueError."""
+def _f32(a) -> np.ndarray:
+    """Numbers as float32 (what the engine computes in); anything else as it is, for the
+    bindings to refuse by name."""
     a = np.asarray(a)
-    if a.dtype.kind not in "fiu":
-        raise ValueError(f"{name} must be a numeric (real) array, got dtype {a.dtype}")
-    if a.ndim != len(shape) or any(s is not None and s != d for s, d in zip(shape, a.shape)):
-        want = "x".join("N" if s is None else str(s) for s in shape)
-        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
-    return np.ascontiguousarray(a, dtype=np.float32)
+    return np.ascontiguousarray(a, dtype=np.float32) if a.dtype.kind in "fiu" else a
 
 
-def _intrinsics(K) -> list[float]:
+def _intrinsics(K) -> np.ndarray:
+    """A 3x3 K from a 3x3 matrix or (fx, fy, cx, cy)."""
     K = np.asarray(K, dtype=np.float64)
-    if K.shape == (3, 3):
-        return [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
     if K.shape == (4,):
-        return list(K)
-    raise ValueError(f"K must be a 3x3 intrinsics matrix or (fx, fy, cx, cy), got shape {K.shape}")
-
-
-def _world_to_camera(pose) -> list[list[float]]:
-    pose = np.asarray(pose, dtype=np.float64)
-    if pose.shape != (4, 4):
-        raise ValueError(f"pose must be a 4x4 camera-to-world matrix, got shape {pose.shape}")
-    if not np.all(np.isfinite(pose)):
-        raise ValueError("pose has a non-finite entry")
-    if not np.allclose(pose[3], [0, 0, 0, 1]):
-        raise ValueError(f"pose's last row must be [0, 0, 0, 1], got {pose[3]}")
-    r, t = pose[:3, :3], pose[:3, 3]
-    w2c = np.eye(4)
-    w2c[:3, :3] = r.T
-    w2c[:3, 3] = -r.T @ t
-    return w2c.tolist()
+        fx, fy, cx, cy = K
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    return np.ascontiguousarray(K)
 
 
 class Render:
     """Images of one render (float32 numpy arrays; None when not requested) and its backward."""
 
-    def __init__(self, core, n: int, k: int):
+    def __init__(self, core):
         self._core = core
-        self._n = n
-        self._k = k
 
     color = property(lambda self: self._core.color, doc="HxWx3 colour")
     depth = property(lambda self: self._core.depth, doc="HxW alpha-blended depth (metres)")
@@ -74,19 +55,11 @@ class Render:
         Returns a dict of float32 arrays shaped like the inputs: means, log_scales, quats,
         opacity_logits, sh, features, plus means2d (N x 2, pixels) and pose (6, see module doc).
         """
-        def grad(name, a, like):
-            if a is None:
-                return None
-            if like is None:
-                raise ValueError(f"{name} was given but that image was not rendered")
-            return _floats(name, a, like.shape)
+        def grad(a):
+            return None if a is None else _f32(a)
 
-        return self._core.backward(
-            d_color=grad("d_color", d_color, self.color),
-            d_depth=grad("d_depth", d_depth, self.depth),
-            d_alpha=grad("d_alpha", d_alpha, self.alpha),
-            d_features=grad("d_features", d_features, self.features),
-        )
+        return self._core.backward(d_color=grad(d_color), d_depth=grad(d_depth),
+                                   d_alpha=grad(d_alpha), d_features=grad(d_features))
 
 
 def render(means, log_scales, quats, opacity_logits, sh, K, pose, width: int, height: int,
@@ -99,29 +72,32 @@ def render(means, log_scales, quats, opacity_logits, sh, K, pose, width: int, he
     K: 3x3 intrinsics (or fx, fy, cx, cy) for a width x height image, pixel centres at integer
     coordinates; pose: 4x4 camera-to-world. sh_degree defaults to the degree sh holds.
     """
-    means = np.asarray(means)
-    n = means.shape[0] if means.ndim == 2 else -1
-    means = _floats("means", means, (None, 3))
-    log_scales = _floats("log_scales", log_scales, (n, 3))
-    quats = _floats("quats", quats, (n, 4))
-    opacity_logits = _floats("opacity_logits", opacity_logits, (n,))
-    sh = np.asarray(sh)
+    means, sh = _f32(means), _f32(sh)
     if sh.ndim == 2:
         sh = sh[:, None, :]
-    sh = _floats("sh", sh, (n, None, 3))
-    if sh.shape[1] not in (1, 4, 9, 16):
-        raise ValueError(f"sh must hold 1, 4, 9 or 16 coefficients per channel, got {sh.shape[1]}")
-    max_degree = int(round(np.sqrt(sh.shape[1]))) - 1
     if sh_degree is None:
-        sh_degree = max_degree
-    if not 0 <= sh_degree <= max_degree:
-        raise ValueError(f"sh_degree must be in 0..{max_degree} for {sh.shape[1]} coefficients")
-    if features is None:
-        features = np.zeros((n, 0), np.float32)
-    features = _floats("features", features, (n, None))
-    if int(width) <= 0 or int(height) <= 0:
-        raise ValueError(f"width and height must be positive, got {width}x{height}")
-    core = _core.render(means, log_scales, quats, opacity_logits, sh, features, _intrinsics(K),
-                        _world_to_camera(pose), int(width), int(height), int(sh_degree),
-                        bool(color), bool(depth), bool(alpha))
-    return Render(core, n, features.shape[1])
+        sh_degree = int(round(np.sqrt(sh.shape[1]))) - 1 if sh.ndim == 3 else 0
+    features = np.zeros((len(means), 0), np.float32) if features is None else _f32(features)
+    core = _core.render(means, _f32(log_scales), _f32(quats), _f32(opacity_logits), sh, features,
+                        _intrinsics(K), np.ascontiguousarray(pose, dtype=np.float64), int(width),
+                        int(height), int(sh_degree), bool(color), bool(depth), bool(alpha))
+    return Render(core)
+
+
+def feature_basis(features: np.ndarray) -> np.ndarray:
+    """K x 3: the first three principal directions of HxWxK features (from about 5000 pixels)."""
+    x = features.reshape(-1, features.shape[-1]).astype(np.float64)
+    centred = x - x.mean(0)
+    _, _, vt = np.linalg.svd(centred[:: max(1, len(x) // 5000)], full_matrices=False)
+    return vt[:3].T
+
+
+def feature_rgb(features: np.ndarray, basis: np.ndarray | None = None) -> np.ndarray:
+    """HxWxK features -> HxWx3 uint8: their projection on `basis` (default: their own first
+    three principal directions) as colour."""
+    h, w, k = features.shape
+    x = features.reshape(-1, k).astype(np.float64)
+    y = x @ (feature_basis(features) if basis is None else basis)
+    lo, hi = np.percentile(y, 2, axis=0), np.percentile(y, 98, axis=0)
+    y = np.clip((y - lo) / np.maximum(hi - lo, 1e-9), 0, 1)
+    return (y.reshape(h, w, 3) * 255).astype(np.uint8)

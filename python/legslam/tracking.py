@@ -19,7 +19,6 @@ poses are 4x4 camera-to-world matrices with OpenCV axes (x right, y down, z forw
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any, Optional
 
 import numpy as np
@@ -30,7 +29,24 @@ __all__ = ["DEFAULT_CONFIG", "fitting_levels", "TrackResult", "Tracker", "Refere
            "OdometryStep"]
 
 #: The engine's default tracker options (`Tracker(**overrides)` changes any of them).
-DEFAULT_CONFIG: dict[str, Any] = dict(_core.tracker_default_config())
+DEFAULT_CONFIG: dict[str, Any] = dict(_core.tracker_options())
+
+#: Outcome of one alignment (the engine's):
+#: pose: 4x4 camera-to-world estimate (when `lost`, the best estimate, not to be trusted);
+#: residual_rms: RMS of the Huber-normalised joint residual (dimensionless);
+#: geometric_rms: RMS point-to-plane distance of the inliers (m);
+#: photometric_rms: RMS intensity residual (intensity in [0, 1]);
+#: inlier_ratio: inlier correspondences / frame pixels with valid depth (finest level);
+#: inliers: number of inlier correspondences (finest level);
+#: condition: condition number of the normal equations (inf if singular);
+#: iterations: Gauss-Newton iterations over all levels;
+#: gain: estimated exposure gain applied to the frame intensity (1 if not estimated);
+#: lost: the alignment cannot be trusted; `reason` says why.
+TrackResult = _core.TrackResult
+
+#: One frame of `Odometry`: `pose` (tracked, or the constant-velocity prediction when lost),
+#: `predicted`, `result` (a TrackResult; None for the first frame) and `lost`.
+OdometryStep = _core.OdometryStep
 
 
 def fitting_levels(width: int, height: int, finest_level: int) -> int:
@@ -40,78 +56,15 @@ def fitting_levels(width: int, height: int, finest_level: int) -> int:
     return min(DEFAULT_CONFIG["levels"], max(1, int(np.log2(max(smallest, 8) / 8)) + 1))
 
 
-@dataclass(frozen=True)
-class TrackResult:
-    """Outcome of one alignment.
-
-    pose: 4x4 camera-to-world estimate (when `lost`, the best estimate, not to be trusted).
-    residual_rms: RMS of the Huber-normalised joint residual (dimensionless).
-    geometric_rms: RMS point-to-plane distance of the inliers (m).
-    photometric_rms: RMS intensity residual (intensity in [0, 1]).
-    inlier_ratio: inlier correspondences / frame pixels with valid depth (finest level).
-    inliers: number of inlier correspondences (finest level).
-    condition: condition number of the normal equations (inf if singular).
-    iterations: Gauss-Newton iterations over all levels.
-    gain: estimated exposure gain applied to the frame intensity (1 if not estimated).
-    lost: the alignment cannot be trusted; `reason` says why.
-    """
-
-    pose: np.ndarray
-    residual_rms: float
-    geometric_rms: float
-    photometric_rms: float
-    inlier_ratio: float
-    inliers: int
-    condition: float
-    iterations: int
-    gain: float
-    lost: bool
-    reason: Optional[str]
-
-    @classmethod
-    def _from_dict(cls, d: dict) -> "TrackResult":
-        return cls(**d)
-
-
-@dataclass(frozen=True)
-class OdometryStep:
-    """One frame of `Odometry`: the pose assigned to it (tracked, or the constant-velocity
-    prediction when lost), the prediction, and the alignment (None for the first frame)."""
-
-    pose: np.ndarray
-    predicted: np.ndarray
-    result: Optional[TrackResult]
-
-    @property
-    def lost(self) -> bool:
-        return self.result is not None and self.result.lost
-
-
-def _rgb(a, name: str) -> np.ndarray:
+def _image(a) -> np.ndarray:
+    """An image as the engine takes it: floats as float32, anything else as it is, for the
+    bindings to check (integer depth is in sensor units: refused, never taken as metres)."""
     a = np.asarray(a)
-    if a.ndim != 3 or a.shape[2] != 3:
-        raise ValueError(f"{name} must be an HxWx3 RGB image, got shape {a.shape}")
-    if a.dtype == np.uint8:
-        return np.ascontiguousarray(a)
-    if np.issubdtype(a.dtype, np.floating):
-        return np.ascontiguousarray(a, dtype=np.float32)
-    raise ValueError(f"{name} must be uint8 (or float in [0, 1]), got dtype {a.dtype}")
+    return np.ascontiguousarray(a, dtype=np.float32) if a.dtype.kind == "f" else np.ascontiguousarray(a)
 
 
-def _depth(a, name: str) -> np.ndarray:
-    a = np.asarray(a)
-    if a.ndim != 2:
-        raise ValueError(f"{name} must be an HxW depth map in metres, got shape {a.shape}")
-    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-        raise ValueError(f"{name} must be float32 metres, got dtype {a.dtype}")
-    return np.ascontiguousarray(a, dtype=np.float32)
-
-
-def _mat(a, n: int, name: str) -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
-    if a.shape != (n, n):
-        raise ValueError(f"{name} must be {n}x{n}, got shape {a.shape}")
-    return np.ascontiguousarray(a)
+def _mat(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
 
 
 class Reference:
@@ -127,13 +80,10 @@ class Reference:
 
 
 class Tracker:
-    """Dense RGB-D tracker. Keyword arguments override `DEFAULT_CONFIG`: `levels`,
-    `finest_level`, `iterations` (per level, finest first), `min_depth`, `max_depth`,
-    `max_depth_diff`, `geometric_huber`, `photometric_huber`, `photometric_weight`,
-    `estimate_gain`, `min_gradient`, `convergence_eps`, `inlier_threshold`, `min_inlier_ratio`, `min_inliers`,
-    `max_condition`, `max_translation`, `max_rotation_deg`. Unknown or invalid options raise
-    ValueError. `threads`: run on a thread pool of this many threads of its own (default: the
-    engine's shared pool)."""
+    """Dense RGB-D tracker. Keyword arguments override `DEFAULT_CONFIG` (the engine's
+    `TrackerConfig` documents each); unknown or invalid options raise ValueError. `threads`:
+    run on a thread pool of this many threads of its own (default: the engine's shared
+    pool)."""
 
     def __init__(self, threads: int | None = None, **config: Any):
         self._core = _core.TrackerCore(config, threads=threads)
@@ -144,12 +94,7 @@ class Tracker:
 
     def prepare_reference(self, rgb, depth, K, pose) -> Reference:
         """Prepares a reference view with camera-to-world `pose`."""
-        return Reference(
-            self._core.prepare_reference(
-                _rgb(rgb, "ref_rgb"), _depth(depth, "ref_depth"), _mat(K, 3, "K"),
-                _mat(pose, 4, "ref_pose"),
-            )
-        )
+        return Reference(self._core.prepare_reference(_image(rgb), _image(depth), _mat(K), _mat(pose)))
 
     def track(self, rgb, depth, K, ref_rgb=None, ref_depth=None, ref_pose=None,
               init_pose=None, *, reference: Optional[Reference] = None) -> TrackResult:
@@ -163,11 +108,7 @@ class Tracker:
         elif ref_rgb is not None or ref_depth is not None or ref_pose is not None:
             raise ValueError("give either reference= or ref_rgb/ref_depth/ref_pose, not both")
         init = reference.pose if init_pose is None else init_pose
-        d = self._core.track(
-            reference._core, _rgb(rgb, "rgb"), _depth(depth, "depth"), _mat(K, 3, "K"),
-            _mat(init, 4, "init_pose"),
-        )
-        return TrackResult._from_dict(d)
+        return self._core.track(reference._core, _image(rgb), _image(depth), _mat(K), _mat(init))
 
 
 class Odometry:
@@ -178,15 +119,10 @@ class Odometry:
 
     def __init__(self, initial_pose=None, motion_prior: bool = True, **config: Any):
         init = np.eye(4) if initial_pose is None else initial_pose
-        self._core = _core.OdometryCore(config, _mat(init, 4, "initial_pose"), bool(motion_prior))
+        self._core = _core.OdometryCore(config, _mat(init), bool(motion_prior))
 
     def step(self, rgb, depth, K) -> OdometryStep:
-        d = self._core.step(_rgb(rgb, "rgb"), _depth(depth, "depth"), _mat(K, 3, "K"))
-        res = d["result"]
-        return OdometryStep(
-            pose=d["pose"], predicted=d["predicted"],
-            result=None if res is None else TrackResult._from_dict(res),
-        )
+        return self._core.step(_image(rgb), _image(depth), _mat(K))
 
     @property
     def frames(self) -> int:

@@ -1,9 +1,11 @@
-//! PyO3 bindings only: numpy in, numpy out, engine errors -> Python exceptions.
-//! Each submodule registers the functions of one engine concept.
+//! PyO3 bindings only: numpy in, numpy out, engine errors -> Python exceptions. The contract
+//! every binding keeps (argument conversions, the guard around engine calls) is in
+//! [`convert`]; each other module registers the entries of one engine concept.
 
 use pyo3::prelude::*;
 
 mod camera;
+mod convert;
 mod map;
 mod pool;
 mod raster;
@@ -11,6 +13,7 @@ mod track;
 
 #[pymodule]
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    convert::register(m)?;
     camera::register(m)?;
     map::register(m)?;
     raster::register(m)?;

@@ -1,56 +1,95 @@
 //! Bindings of the mapper: the map lives here in Rust; frames cross once, images and arrays
 //! are copied out only on request.
 
-use legslam_core::camera::{Intrinsics, Pose};
-use legslam_core::map::train::{Mapper, MapperConfig};
+use legslam_core::map::train::{Mapper, MapperConfig, TrainReport};
 use legslam_core::map::{FeatureGrid, GaussianMap};
+use legslam_core::raster::Rendered;
 use legslam_core::Real;
-use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
-use pyo3::exceptions::PyValueError;
+use numpy::{PyArray1, PyArrayMethods, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
+use crate::convert::{array, contiguous, intrinsics, options_dict, options_from, pose, size};
 use crate::pool;
 
-fn config_from_dict(d: Option<&Bound<'_, PyDict>>) -> PyResult<MapperConfig> {
-    let mut c = MapperConfig::default();
-    if let Some(d) = d {
-        for (k, v) in d.iter() {
-            let key: String = k.extract()?;
-            let value: f64 = v.extract().map_err(|_| {
-                PyValueError::new_err(format!("mapper option {key} must be a number"))
-            })?;
-            c.set(&key, value).map_err(PyValueError::new_err)?;
-        }
-    }
-    Ok(c)
-}
-
-/// The mapper's default options as a dict.
+/// The mapper's options: its defaults overridden by `options`, checked; a dict.
 #[pyfunction]
-fn mapper_default_config(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
-    let d = PyDict::new(py);
-    for (k, v) in MapperConfig::default().entries() {
-        d.set_item(k, v)?;
-    }
-    Ok(d)
+#[pyo3(signature = (options=None))]
+fn mapper_options<'py>(
+    py: Python<'py>,
+    options: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let c = options_from(py, options, "mapper", MapperConfig::validate)?;
+    options_dict(py, &c)
 }
 
-fn pose(p: &PyReadonlyArray2<'_, f64>) -> PyResult<Pose> {
-    let a = p.as_array();
-    if a.shape() != [4, 4] {
-        return Err(PyValueError::new_err(format!(
-            "pose must be a 4x4 camera-to-world matrix, got shape {:?}",
-            a.shape()
-        )));
-    }
-    let mut out = [[0.0; 4]; 4];
-    for i in 0..4 {
-        for j in 0..4 {
-            out[i][j] = a[[i, j]];
+/// What `MapperCore.train` did: iterations run, the last iteration's loss terms, the
+/// Gaussians densification and pruning added and removed, and seconds per phase.
+#[pyclass(module = "legslam._core", name = "TrainReport", frozen, get_all)]
+pub struct PyTrainReport {
+    iterations: usize,
+    loss: f64,
+    color_l1: f64,
+    ssim: f64,
+    depth_l1: f64,
+    feature_loss: f64,
+    cloned: usize,
+    split: usize,
+    pruned: usize,
+    render_s: f64,
+    loss_s: f64,
+    backward_s: f64,
+    step_s: f64,
+}
+
+impl From<TrainReport> for PyTrainReport {
+    fn from(r: TrainReport) -> Self {
+        PyTrainReport {
+            iterations: r.iterations,
+            loss: r.last.total,
+            color_l1: r.last.color_l1,
+            ssim: r.last.ssim,
+            depth_l1: r.last.depth_l1,
+            feature_loss: r.last.feature,
+            cloned: r.cloned,
+            split: r.split,
+            pruned: r.pruned,
+            render_s: r.render_s,
+            loss_s: r.loss_s,
+            backward_s: r.backward_s,
+            step_s: r.step_s,
         }
     }
-    Ok(out)
+}
+
+/// Images of the map rendered from a pose: colour HxWx3, depth and alpha HxW (float32), and
+/// features HxWxK when asked for (else None).
+#[pyclass(module = "legslam._core", name = "MapRender", frozen, get_all)]
+pub struct PyMapRender {
+    color: Py<PyAny>,
+    depth: Py<PyAny>,
+    alpha: Py<PyAny>,
+    features: Option<Py<PyAny>>,
+}
+
+impl PyMapRender {
+    fn new(py: Python<'_>, r: &Rendered) -> PyResult<Self> {
+        let (w, h) = (r.width, r.height);
+        let image = |v: &[f32], shape: Vec<usize>| -> PyResult<Py<PyAny>> {
+            Ok(PyArray1::from_slice(py, v)
+                .reshape(shape)?
+                .into_any()
+                .unbind())
+        };
+        Ok(PyMapRender {
+            color: image(&r.color, vec![h, w, 3])?,
+            depth: image(&r.depth, vec![h, w])?,
+            alpha: image(&r.alpha, vec![h, w])?,
+            features: (!r.features.is_empty())
+                .then(|| image(&r.features, vec![h, w, r.num_features]))
+                .transpose()?,
+        })
+    }
 }
 
 #[pyclass(module = "legslam._core", name = "MapperCore")]
@@ -62,21 +101,24 @@ pub struct PyMapper {
 
 #[pymethods]
 impl PyMapper {
-    /// `threads`: run on a pool of this many threads of its own instead of the global one.
+    /// `options`: mapper options by name (see `mapper_options`); `threads`: run on a pool of
+    /// this many threads of its own instead of the global one.
     #[new]
-    #[pyo3(signature = (config=None, threads=None))]
-    fn new(config: Option<&Bound<'_, PyDict>>, threads: Option<usize>) -> PyResult<Self> {
-        let inner = Mapper::new(config_from_dict(config)?).map_err(PyValueError::new_err)?;
+    #[pyo3(signature = (options=None, threads=None))]
+    fn new(
+        py: Python<'_>,
+        options: Option<&Bound<'_, PyDict>>,
+        threads: Option<usize>,
+    ) -> PyResult<Self> {
+        // Mapper::new checks the options.
+        let config = options_from(py, options, "mapper", |_: &MapperConfig| Ok(()))?;
         let pool = pool::build(threads, "legslam-map")?;
+        let inner = pool::call(&pool, py, || Mapper::new(config))?;
         Ok(PyMapper { inner, pool })
     }
 
     fn config<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let d = PyDict::new(py);
-        for (k, v) in self.inner.config.entries() {
-            d.set_item(k, v)?;
-        }
-        Ok(d)
+        options_dict(py, &self.inner.config)
     }
 
     #[getter]
@@ -89,46 +131,37 @@ impl PyMapper {
         self.inner.keyframes.len()
     }
 
-    #[getter]
-    fn extent(&self) -> f64 {
-        self.inner.extent() as f64
-    }
-
-    /// Adds a keyframe: rgb HxWx3 float32 in [0, 1], depth HxW float32 metres, K as
-    /// (fx, fy, cx, cy), camera-to-world pose. Returns (keyframe id, Gaussians added).
-    fn add_keyframe(
+    /// Adds a keyframe: rgb HxWx3 float32 in [0, 1], depth HxW float32 metres, K 3x3,
+    /// camera-to-world pose 4x4. Returns (keyframe id, Gaussians added).
+    fn add_keyframe<'py>(
         &mut self,
-        py: Python<'_>,
-        rgb: PyReadonlyArray3<'_, f32>,
-        depth: PyReadonlyArray2<'_, f32>,
-        k: [f64; 4],
-        pose_c2w: PyReadonlyArray2<'_, f64>,
+        py: Python<'py>,
+        rgb: &Bound<'py, PyAny>,
+        depth: &Bound<'py, PyAny>,
+        k: &Bound<'py, PyAny>,
+        pose_c2w: &Bound<'py, PyAny>,
     ) -> PyResult<(u32, usize)> {
+        let depth = array::<f32, numpy::Ix2>(depth, "depth", &[None, None])?;
         let (h, w) = (depth.shape()[0], depth.shape()[1]);
-        if rgb.shape() != [h, w, 3] {
-            return Err(PyValueError::new_err(format!(
-                "rgb must be {h}x{w}x3 like the depth, got {:?}",
-                rgb.shape()
-            )));
-        }
-        let rgb = rgb.as_array().iter().copied().collect();
-        let depth = depth.as_array().iter().copied().collect();
-        let p = pose(&pose_c2w)?;
+        let rgb = array::<f32, numpy::Ix3>(rgb, "rgb", &[Some(h), Some(w), Some(3)])?;
+        let intr = intrinsics(k, w, h)?;
+        let p = pose(pose_c2w, "pose")?;
+        let rgb = contiguous("rgb", &rgb)?.to_vec();
+        let depth = contiguous("depth", &depth)?.to_vec();
         let inner = &mut self.inner;
-        pool::call(&self.pool, py, || {
-            inner.add_keyframe(rgb, depth, Intrinsics::from_array(k, w, h), p)
-        })
+        pool::call(&self.pool, py, || inner.add_keyframe(rgb, depth, intr, p))
     }
 
     /// Sets keyframe `id`'s feature grid (h x w x K float32, compressed).
-    fn set_features(
+    fn set_features<'py>(
         &mut self,
-        py: Python<'_>,
+        py: Python<'py>,
         id: u32,
-        grid: PyReadonlyArray3<'_, f32>,
+        grid: &Bound<'py, PyAny>,
     ) -> PyResult<()> {
+        let grid = array::<f32, numpy::Ix3>(grid, "grid", &[None, None, None])?;
         let s = grid.shape().to_vec();
-        let data = grid.as_array().iter().copied().collect();
+        let data = contiguous("grid", &grid)?.to_vec();
         let inner = &mut self.inner;
         pool::call(&self.pool, py, || {
             let g = FeatureGrid::new(data, s[1], s[0], s[2])?;
@@ -137,134 +170,98 @@ impl PyMapper {
     }
 
     /// Runs mapping iterations on keyframes drawn from the most recent `window` (default: the
-    /// configured window); returns a dict of what happened.
+    /// configured window).
     #[pyo3(signature = (iterations, window=None))]
-    fn train<'py>(
+    fn train(
         &mut self,
-        py: Python<'py>,
+        py: Python<'_>,
         iterations: usize,
         window: Option<usize>,
-    ) -> PyResult<Bound<'py, PyDict>> {
+    ) -> PyResult<PyTrainReport> {
         let inner = &mut self.inner;
         let window = window.unwrap_or(inner.config.window);
         let r = pool::call(&self.pool, py, || inner.train_window(iterations, window))?;
-        let d = PyDict::new(py);
-        d.set_item("iterations", r.iterations)?;
-        d.set_item("loss", r.last.total)?;
-        d.set_item("color_l1", r.last.color_l1)?;
-        d.set_item("ssim", r.last.ssim)?;
-        d.set_item("depth_l1", r.last.depth_l1)?;
-        d.set_item("feature_loss", r.last.feature)?;
-        d.set_item("cloned", r.cloned)?;
-        d.set_item("split", r.split)?;
-        d.set_item("pruned", r.pruned)?;
-        d.set_item("render_s", r.render_s)?;
-        d.set_item("loss_s", r.loss_s)?;
-        d.set_item("backward_s", r.backward_s)?;
-        d.set_item("step_s", r.step_s)?;
-        Ok(d)
+        Ok(r.into())
     }
 
-    /// Renders the map from a camera-to-world pose: dict of color, depth, alpha (and
-    /// features when asked and the map has them).
+    /// Renders the map from a camera-to-world pose (features when asked and the map has them).
     #[pyo3(signature = (pose_c2w, k, width, height, features=false))]
     fn render<'py>(
         &self,
         py: Python<'py>,
-        pose_c2w: PyReadonlyArray2<'_, f64>,
-        k: [f64; 4],
-        width: usize,
-        height: usize,
+        pose_c2w: &Bound<'py, PyAny>,
+        k: &Bound<'py, PyAny>,
+        width: i64,
+        height: i64,
         features: bool,
-    ) -> PyResult<Bound<'py, PyDict>> {
-        let p = pose(&pose_c2w)?;
+    ) -> PyResult<PyMapRender> {
+        let (width, height) = size(width, height)?;
+        let p = pose(pose_c2w, "pose")?;
+        let intr = intrinsics(k, width, height)?;
         let inner = &self.inner;
-        let r = pool::call(&self.pool, py, || {
-            inner.render(&p, Intrinsics::from_array(k, width, height), features)
-        })?;
-        let d = PyDict::new(py);
-        d.set_item(
-            "color",
-            PyArray1::from_slice(py, &r.color).reshape([height, width, 3])?,
-        )?;
-        d.set_item(
-            "depth",
-            PyArray1::from_slice(py, &r.depth).reshape([height, width])?,
-        )?;
-        d.set_item(
-            "alpha",
-            PyArray1::from_slice(py, &r.alpha).reshape([height, width])?,
-        )?;
-        if !r.features.is_empty() {
-            d.set_item(
-                "features",
-                PyArray1::from_slice(py, &r.features).reshape([height, width, r.num_features])?,
-            )?;
-        }
-        Ok(d)
+        let r = pool::call(&self.pool, py, || inner.render(&p, intr, features))?;
+        PyMapRender::new(py, &r)
     }
 
     /// Every keyframe's camera-to-world pose (refined by mapping when pose learning rates are
     /// set), in keyframe order: n x 4 x 4.
     fn keyframe_poses<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let flat: Vec<f64> = self
-            .inner
-            .keyframes
-            .iter()
-            .flat_map(|k| k.pose.into_iter().flatten())
-            .collect();
-        let n = self.inner.keyframes.len();
-        Ok(PyArray1::from_vec(py, flat).reshape([n, 4, 4])?.into_any())
+        let kfs = &self.inner.keyframes;
+        let flat = pool::call(&self.pool, py, || {
+            Ok(kfs
+                .iter()
+                .flat_map(|k| k.pose.transpose().iter().copied().collect::<Vec<_>>())
+                .collect::<Vec<f64>>())
+        })?;
+        Ok(PyArray1::from_vec(py, flat)
+            .reshape([kfs.len(), 4, 4])?
+            .into_any())
     }
 
     /// Every keyframe's exposure as n x 2 x 3: per channel the gain and the bias that take
     /// the map's colour to what the camera recorded (1 and 0 when exposures are not trained).
     fn keyframe_exposures<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let flat: Vec<Real> = self
-            .inner
-            .keyframes
-            .iter()
-            .flat_map(|k| {
-                k.exposure
-                    .log_gain
-                    .map(Real::exp)
-                    .into_iter()
-                    .chain(k.exposure.bias)
-            })
-            .collect();
-        let n = self.inner.keyframes.len();
-        Ok(PyArray1::from_vec(py, flat).reshape([n, 2, 3])?.into_any())
+        let kfs = &self.inner.keyframes;
+        let flat = pool::call(&self.pool, py, || {
+            Ok(kfs
+                .iter()
+                .flat_map(|k| {
+                    k.exposure
+                        .log_gain
+                        .map(Real::exp)
+                        .into_iter()
+                        .chain(k.exposure.bias)
+                })
+                .collect::<Vec<Real>>())
+        })?;
+        Ok(PyArray1::from_vec(py, flat)
+            .reshape([kfs.len(), 2, 3])?
+            .into_any())
     }
 
-    /// The map's arrays (copies).
+    /// The map's arrays (copies), named as `GaussianMap`'s fields.
     fn export<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let m: &GaussianMap = &self.inner.map;
-        let n = m.len();
+        let copy = pool::call(&self.pool, py, || Ok(m.clone()))?;
+        let n = copy.len();
         let d = PyDict::new(py);
-        d.set_item("means", PyArray1::from_slice(py, &m.means).reshape([n, 3])?)?;
-        d.set_item(
-            "log_scales",
-            PyArray1::from_slice(py, &m.log_scales).reshape([n, 3])?,
-        )?;
-        d.set_item("quats", PyArray1::from_slice(py, &m.quats).reshape([n, 4])?)?;
-        d.set_item(
-            "opacity_logits",
-            PyArray1::from_slice(py, &m.opacity_logits),
-        )?;
-        d.set_item(
-            "sh",
-            PyArray1::from_slice(py, &m.sh).reshape([n, m.sh_coeffs, 3])?,
-        )?;
-        d.set_item(
-            "features",
-            PyArray1::from_slice(py, &m.features).reshape([n, m.num_features])?,
-        )?;
+        let put = |name: &str, v: Vec<Real>, shape: Vec<usize>| -> PyResult<()> {
+            d.set_item(name, PyArray1::from_vec(py, v).reshape(shape)?)
+        };
+        put("means", copy.means, vec![n, 3])?;
+        put("log_scales", copy.log_scales, vec![n, 3])?;
+        put("quats", copy.quats, vec![n, 4])?;
+        put("opacity_logits", copy.opacity_logits, vec![n])?;
+        put("sh", copy.sh, vec![n, copy.sh_coeffs, 3])?;
+        put("features", copy.features, vec![n, copy.num_features])?;
         Ok(d)
     }
 }
 
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyMapper>()?;
-    m.add_function(wrap_pyfunction!(mapper_default_config, m)?)?;
+    m.add_class::<PyTrainReport>()?;
+    m.add_class::<PyMapRender>()?;
+    m.add_function(wrap_pyfunction!(mapper_options, m)?)?;
     Ok(())
 }

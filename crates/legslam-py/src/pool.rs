@@ -4,7 +4,7 @@
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 
-use crate::raster::engine_call;
+use crate::convert::engine_call;
 
 /// `None` (rayon's global pool) or a pool of `threads` threads named `{name}-{i}`.
 pub fn build(threads: Option<usize>, name: &'static str) -> PyResult<Option<rayon::ThreadPool>> {

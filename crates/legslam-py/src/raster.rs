@@ -1,40 +1,16 @@
 //! Bindings of the rasterizer: `render` returns a `Render` holding the images and what its
-//! `backward` needs. Shapes and dtypes are checked by the Python wrapper (legslam.render);
-//! values (finite, unit quaternions, sizes) by the engine, whose errors become ValueError.
+//! `backward` needs (legslam.render documents the entry).
 
-use legslam_core::camera::Intrinsics;
+use legslam_core::camera::se3;
 use legslam_core::map::GaussianMap;
 use legslam_core::raster::{
     backward, render as engine_render, Camera, ImageGrads, RenderOptions, Rendered,
 };
-use numpy::{
-    PyArray1, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2, PyReadonlyArrayDyn,
-    PyUntypedArrayMethods,
-};
-use pyo3::exceptions::{PyRuntimeError, PyValueError};
+use numpy::{IxDyn, PyArray1, PyArrayMethods, PyReadonlyArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-/// Runs engine code without the GIL, turning errors into ValueError and a panic (a bug) into
-/// RuntimeError instead of letting it cross into Python.
-pub fn engine_call<T: Send>(
-    py: Python<'_>,
-    f: impl FnOnce() -> Result<T, String> + Send,
-) -> PyResult<T> {
-    py.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
-        .map_err(|_| {
-            PyRuntimeError::new_err("legslam engine failed internally (a bug): please report it")
-        })?
-        .map_err(PyValueError::new_err)
-}
-
-pub(crate) fn contiguous<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
-    name: &str,
-    a: &'a numpy::PyReadonlyArray<'_, T, D>,
-) -> PyResult<&'a [T]> {
-    a.as_slice()
-        .map_err(|_| PyValueError::new_err(format!("{name} must be a C-contiguous array")))
-}
+use crate::convert::{array, contiguous, engine_call, intrinsics, pose, size};
 
 #[pyclass(module = "legslam._core", name = "Render")]
 pub struct PyRender {
@@ -86,33 +62,39 @@ impl PyRender {
         self.rendered.num_pairs()
     }
 
-    /// Gradients of a scalar loss given d(loss)/d(image) for the images that enter it.
+    /// Gradients of a scalar loss given d(loss)/d(image) for the images that enter it, each
+    /// shaped like its image.
     #[pyo3(signature = (d_color=None, d_depth=None, d_alpha=None, d_features=None))]
     fn backward<'py>(
         &self,
         py: Python<'py>,
-        d_color: Option<PyReadonlyArrayDyn<'py, f32>>,
-        d_depth: Option<PyReadonlyArrayDyn<'py, f32>>,
-        d_alpha: Option<PyReadonlyArrayDyn<'py, f32>>,
-        d_features: Option<PyReadonlyArrayDyn<'py, f32>>,
+        d_color: Option<&Bound<'py, PyAny>>,
+        d_depth: Option<&Bound<'py, PyAny>>,
+        d_alpha: Option<&Bound<'py, PyAny>>,
+        d_features: Option<&Bound<'py, PyAny>>,
     ) -> PyResult<Bound<'py, PyDict>> {
+        let r = &self.rendered;
+        let (h, w) = (Some(r.height), Some(r.width));
+        let grad = |a: Option<&Bound<'py, PyAny>>, name: &str, shape: &[Option<usize>]| {
+            a.map(|a| array::<f32, IxDyn>(a, name, shape)).transpose()
+        };
+        let d_color = grad(d_color, "d_color", &[h, w, Some(3)])?;
+        let d_depth = grad(d_depth, "d_depth", &[h, w])?;
+        let d_alpha = grad(d_alpha, "d_alpha", &[h, w])?;
+        // Without rendered features any width: the engine then says they were not rendered.
+        let k = Some(r.num_features).filter(|k| *k > 0);
+        let d_features = grad(d_features, "d_features", &[h, w, k])?;
+        fn slice<'a>(
+            a: &'a Option<PyReadonlyArrayDyn<'_, f32>>,
+            name: &str,
+        ) -> PyResult<Option<&'a [f32]>> {
+            a.as_ref().map(|a| contiguous(name, a)).transpose()
+        }
         let grads = ImageGrads {
-            color: d_color
-                .as_ref()
-                .map(|a| contiguous("d_color", a))
-                .transpose()?,
-            depth: d_depth
-                .as_ref()
-                .map(|a| contiguous("d_depth", a))
-                .transpose()?,
-            alpha: d_alpha
-                .as_ref()
-                .map(|a| contiguous("d_alpha", a))
-                .transpose()?,
-            features: d_features
-                .as_ref()
-                .map(|a| contiguous("d_features", a))
-                .transpose()?,
+            color: slice(&d_color, "d_color")?,
+            depth: slice(&d_depth, "d_depth")?,
+            alpha: slice(&d_alpha, "d_alpha")?,
+            features: slice(&d_features, "d_features")?,
         };
         let g = engine_call(py, || {
             backward(&self.gaussians.view(), &self.camera, &self.rendered, &grads)
@@ -138,47 +120,49 @@ impl PyRender {
     }
 }
 
-/// Renders Gaussians; see `legslam.render` for the documented, checked entry point.
+/// Renders Gaussians; see `legslam.render` for the documented entry point.
 #[pyfunction]
-#[pyo3(signature = (means, log_scales, quats, opacity_logits, sh, features, intrinsics, world_to_camera, width, height, sh_degree, color, depth, alpha))]
+#[pyo3(signature = (means, log_scales, quats, opacity_logits, sh, features, k, pose_c2w, width, height, sh_degree, color, depth, alpha))]
 #[allow(clippy::too_many_arguments)]
 fn render<'py>(
     py: Python<'py>,
-    means: PyReadonlyArray2<'py, f32>,
-    log_scales: PyReadonlyArray2<'py, f32>,
-    quats: PyReadonlyArray2<'py, f32>,
-    opacity_logits: PyReadonlyArray1<'py, f32>,
-    sh: PyReadonlyArrayDyn<'py, f32>,
-    features: PyReadonlyArray2<'py, f32>,
-    intrinsics: [f64; 4],
-    world_to_camera: [[f64; 4]; 4],
-    width: usize,
-    height: usize,
+    means: &Bound<'py, PyAny>,
+    log_scales: &Bound<'py, PyAny>,
+    quats: &Bound<'py, PyAny>,
+    opacity_logits: &Bound<'py, PyAny>,
+    sh: &Bound<'py, PyAny>,
+    features: &Bound<'py, PyAny>,
+    k: &Bound<'py, PyAny>,
+    pose_c2w: &Bound<'py, PyAny>,
+    width: i64,
+    height: i64,
     sh_degree: usize,
     color: bool,
     depth: bool,
     alpha: bool,
 ) -> PyResult<PyRender> {
-    // The count from the array's shape, so that an empty map keeps its degree.
-    let &[_, sh_coeffs, 3] = sh.shape() else {
-        return Err(PyValueError::new_err(format!(
-            "sh must have shape (N, C, 3), got {:?}",
-            sh.shape()
-        )));
-    };
+    let means = array::<f32, numpy::Ix2>(means, "means", &[None, Some(3)])?;
+    let n = Some(means.shape()[0]);
+    let log_scales = array::<f32, numpy::Ix2>(log_scales, "log_scales", &[n, Some(3)])?;
+    let quats = array::<f32, numpy::Ix2>(quats, "quats", &[n, Some(4)])?;
+    let opacity = array::<f32, numpy::Ix1>(opacity_logits, "opacity_logits", &[n])?;
+    // The coefficient count from the array's shape, so that an empty map keeps its degree.
+    let sh = array::<f32, numpy::Ix3>(sh, "sh", &[n, None, Some(3)])?;
+    let features = array::<f32, numpy::Ix2>(features, "features", &[n, None])?;
+    let (width, height) = size(width, height)?;
+    let intr = intrinsics(k, width, height)?;
+    let c2w = pose(pose_c2w, "pose")?;
     let gaussians = GaussianMap {
         means: contiguous("means", &means)?.to_vec(),
         log_scales: contiguous("log_scales", &log_scales)?.to_vec(),
         quats: contiguous("quats", &quats)?.to_vec(),
-        opacity_logits: contiguous("opacity_logits", &opacity_logits)?.to_vec(),
+        opacity_logits: contiguous("opacity_logits", &opacity)?.to_vec(),
         sh: contiguous("sh", &sh)?.to_vec(),
-        sh_coeffs,
+        sh_coeffs: sh.shape()[1],
         features: contiguous("features", &features)?.to_vec(),
         num_features: features.shape()[1],
         ..Default::default()
     };
-    let intr = Intrinsics::from_array(intrinsics, width, height);
-    let camera = Camera::new(intr, &world_to_camera).map_err(PyValueError::new_err)?;
     let opts = RenderOptions {
         sh_degree,
         color,
@@ -187,10 +171,12 @@ fn render<'py>(
         features: gaussians.num_features > 0,
         ..Default::default()
     };
-    let rendered = engine_call(py, || {
+    let (camera, rendered) = engine_call(py, || {
+        se3::validate_pose(&c2w, "pose")?;
+        let camera = Camera::new(intr, &se3::inverse(&c2w))?;
         let g = gaussians.view();
         g.validate()?;
-        engine_render(&g, &camera, &opts)
+        Ok((camera, engine_render(&g, &camera, &opts)?))
     })?;
     Ok(PyRender {
         gaussians,

@@ -18,16 +18,9 @@ def register_depth(depth: np.ndarray, K_depth: np.ndarray, K_color: np.ndarray,
     from .. import _core
 
     depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"depth must be an HxW image, got shape {depth.shape}")
-
-    def fxfycxcy(K):
-        K = np.asarray(K, dtype=np.float64)
-        return [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
-
-    out = _core.register_depth(np.ascontiguousarray(depth, dtype=np.float32), fxfycxcy(K_depth),
-                               fxfycxcy(K_color), np.asarray(color_from_depth, np.float64).tolist(),
-                               int(size[0]), int(size[1]))
+    f64 = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
+    out = _core.register_depth(np.ascontiguousarray(depth, dtype=np.float32), f64(K_depth),
+                               f64(K_color), f64(color_from_depth), int(size[0]), int(size[1]))
     if np.issubdtype(depth.dtype, np.integer):
         rounded = np.minimum(np.rint(out), np.iinfo(depth.dtype).max)
         rounded[(rounded == 0) & (out > 0)] = 1  # a hit stays a measurement
