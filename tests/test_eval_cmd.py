@@ -9,14 +9,13 @@ import cv2
 import numpy as np
 import pytest
 
-import legslam.features
+import legslam.cli.text_model
 from legslam.cli import main
 from legslam.datasets import open as open_dataset
-from legslam.eval import read_tum
+from legslam.eval import NoPrototypes, by_example, by_text, read_tum
 from legslam.features import PCA
 from legslam.features.text import TEMPLATES
 from legslam.map import GaussianMap
-from legslam.semantic_eval import NoPrototypes, by_example, by_text
 
 SEMANTIC_KEYS = ("semantic_route", "miou", "miou_by_example")
 
@@ -136,7 +135,7 @@ def test_by_example_miou_on_the_synthetic_run_drops_with_scrambled_features(run_
     print(f"by-example mIoU {r['miou_by_example']:.3f}, pixel acc {r['pixel_acc_by_example']:.3f}, "
           f"support {r['support_frames']}, {len(present)} classes present")
     assert "miou" not in r and r["semantic_route"] == "by_example"
-    assert r["semantic_views"] == r["views"] - len(r["support_frames"]) > 0
+    assert r["semantic_views"] == r["every_2"]["count"] - len(r["support_frames"]) > 0
     # Any constant prediction scores at most 1/len(present).
     assert 3 / len(present) < r["miou_by_example"] <= 1
     m = GaussianMap.load(run / "map.ply")
@@ -188,7 +187,7 @@ def test_text_route_with_a_fake_text_encoder_gives_the_expected_miou(run_copy, m
     emb = {n: pca.inverse_transform(_unit(m)) if np.any(m) else rng.standard_normal(pca.dim)
            for n, m in zip(names, means)}
     monkeypatch.setattr(FakeTextEncoder, "embeddings", emb)
-    monkeypatch.setattr(legslam.features, "TextEncoder", FakeTextEncoder)
+    monkeypatch.setattr(legslam.cli.text_model, "TextEncoder", FakeTextEncoder)
     r = _eval(run, "--every", "2")
     # What text_queries makes of them: normalised, compressed, normalised.
     queries = np.stack([_unit((_unit(emb[n]) - pca.mean) @ pca.components.T) for n in names])
@@ -206,7 +205,7 @@ def test_eval_matches_a_downscaled_run_and_rejects_other_sizes(plain_run, tmp_pa
     run = tmp_path / "run"
     shutil.copytree(plain_run, run)
     report = _eval(run, "--every", "2")
-    assert report["views"] == 2 and report["psnr"] > 10
+    assert report["every_2"]["count"] == 2 and report["every_2"]["psnr"] > 10
     cam = json.loads((run / "camera.json").read_text())
     (run / "camera.json").write_text(json.dumps({**cam, "width": 70}))
     capsys.readouterr()
@@ -241,7 +240,7 @@ def test_unreadable_frames_are_left_out_by_name(plain_run, small_synthetic, tmp_
     assert main(["eval", str(run), "--sequence", str(scene), "--every", "1"]) == 0
     assert "frame 0 left out: " in capsys.readouterr().err
     report = json.loads((run / "eval.json").read_text())
-    assert report["unreadable_frames"] == [0] and report["views"] == whole["frames"] - 1
+    assert report["unreadable_frames"] == [0] and report["every_1"]["count"] == whole["frames"] - 1
     for label in sorted((scene / "labels").glob("*.png")):
         cv2.imwrite(str(label), np.zeros((10, 10), np.uint8))
     assert main(["eval", str(run), "--sequence", str(scene)]) == 2

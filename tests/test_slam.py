@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from legslam.cli import main
+from legslam.cli.progress import Progress
 from legslam.datasets import open as open_dataset
 from legslam.eval import ate, read_tum
 from legslam.map import GaussianMap
@@ -31,7 +32,7 @@ def psnr_of(result):
 @pytest.fixture(scope="module")
 def mapped(scene, tmp_path_factory):
     cfg = SLAMConfig(features=False, final_iters=30)
-    return run(open_dataset(scene), tmp_path_factory.mktemp("mapped"), cfg, progress=False)
+    return run(open_dataset(scene), tmp_path_factory.mktemp("mapped"), cfg)
 
 
 def test_slam_tracks_and_maps_the_synthetic_scene(mapped, scene):
@@ -40,7 +41,7 @@ def test_slam_tracks_and_maps_the_synthetic_scene(mapped, scene):
     gt = np.stack([seq[i].pose for i in range(len(seq))])
     # A tracker that never moves scores the camera's own spread; ours is far below it.
     still = ate(gt, np.repeat(np.eye(4)[None], len(gt), axis=0))["rmse"]
-    assert m["ate_rmse_m"] < 0.01 and m["ate_rmse_m"] < 0.1 * still, (m["ate_rmse_m"], still)
+    assert m["ate_rmse_cm"] < 1 and m["ate_rmse_cm"] < 0.1 * 100 * still, (m["ate_rmse_cm"], still)
     assert m["lost_frames"] == 0 and m["keyframes"] >= 2
     assert m["every_5"]["psnr"] > 27, m
     assert m["every_5"]["depth_l1_cm"] < 3, m
@@ -49,7 +50,7 @@ def test_slam_tracks_and_maps_the_synthetic_scene(mapped, scene):
 
 def test_mapping_improves_the_map(mapped, scene, tmp_path):
     frozen = SLAMConfig(features=False, map_iters_keyframe=0, map_iters_frame=0, final_iters=0)
-    unmapped = run(open_dataset(scene), tmp_path, frozen, progress=False)
+    unmapped = run(open_dataset(scene), tmp_path, frozen)
     assert psnr_of(mapped) > psnr_of(unmapped) + 2.0, (psnr_of(mapped), psnr_of(unmapped))
 
 
@@ -82,14 +83,46 @@ def test_slam_rejects_bad_frames(scene):
 
 
 def test_config_files_and_unknown_options(tmp_path):
-    (tmp_path / "c.toml").write_text("keyframe_translation = 0.2\n[mapper]\nwindow = 4\n")
+    (tmp_path / "c.toml").write_text("keyframe_translation = 0.2\n[mapper]\nwindow = 4\n"
+                                     "[tracker]\nmax_depth = 8\n")
     cfg = SLAMConfig.from_file(tmp_path / "c.toml")
-    assert cfg.keyframe_translation == 0.2 and cfg.mapper == {"window": 4}
+    assert cfg.keyframe_translation == 0.2 and cfg.mapper.window == 4 and cfg.tracker.max_depth == 8
+    slam = SLAM(cfg, np.eye(3) * [[100], [100], [1]], 64, 48)
+    assert slam.mapper.config()["window"] == 4, "a section's option reaches the engine"
+    assert slam.tracking.tracker.config["max_depth"] == 8
     (tmp_path / "bad.json").write_text('{"keyframe_translaton": 0.2}')
     with pytest.raises(ValueError, match="unknown option.*keyframe_translaton"):
         SLAMConfig.from_file(tmp_path / "bad.json")
-    with pytest.raises(ValueError, match="unknown mapper option \"windw\""):
-        SLAM(SLAMConfig(features=False, mapper={"windw": 3}), np.eye(3), 10, 10)
+    with pytest.raises(ValueError, match="unknown mapper option.*windw"):
+        SLAMConfig(features=False, mapper={"windw": 3})
+    # A config file reads back what a run wrote into config.json.
+    (tmp_path / "again.json").write_text(json.dumps(cfg.to_dict()))
+    assert SLAMConfig.from_file(tmp_path / "again.json") == cfg
+
+
+def test_config_sections_are_the_engine_options_and_a_derived_one_is_set_in_one_place():
+    from legslam import _core
+    from legslam.slam import DERIVED, MapperOptions, TrackerOptions
+    from dataclasses import fields
+
+    for section, cls, engine in (("mapper", MapperOptions, _core.mapper_options()),
+                                 ("tracker", TrackerOptions, _core.tracker_options())):
+        names = {f.name for f in fields(cls)}
+        assert names | set(DERIVED[section]) == set(engine) and not names & set(DERIVED[section])
+    # What SLAMConfig derives cannot be set in a section too: the error names both.
+    with pytest.raises(ValueError, match="mapper.sh_degree is set from sh_degree"):
+        SLAMConfig(mapper={"sh_degree": 0})
+    # Kinds and values are checked before any frame, by name.
+    with pytest.raises(ValueError, match="mapper.window must be an integer, got 2.5"):
+        SLAMConfig(mapper={"window": 2.5})
+    with pytest.raises(ValueError, match="mapper.adam_sparse must be true or false, got 1"):
+        SLAMConfig(mapper={"adam_sparse": 1})
+    with pytest.raises(ValueError, match="mapper: revisit must lie in \\[0, 1\\], got 2"):
+        SLAMConfig(mapper={"revisit": 2.0})
+    with pytest.raises(ValueError, match="tracker.iterations must be a list of integers"):
+        SLAMConfig(tracker={"iterations": 3})
+    with pytest.raises(ValueError, match="tracker: .*geometric_huber must be positive"):
+        SLAMConfig(tracker={"geometric_huber": -1.0})
 
 
 def test_cli_run_writes_a_trajectory_per_frame(scene, tmp_path, capsys):
@@ -132,9 +165,9 @@ def test_cli_render_and_eval_on_a_run(mapped, tmp_path, capsys):
     assert main(["eval", str(out)]) == 0
     report = json.loads((out / "eval.json").read_text())
     # The same map and poses as the run's own evaluation: the same numbers.
-    assert abs(report["ate_rmse_cm"] - 100 * mapped["metrics"]["ate_rmse_m"]) < 1e-6
-    assert abs(report["psnr"] - mapped["metrics"]["every_5"]["psnr"]) < 0.05
-    assert "| psnr |" in capsys.readouterr().out
+    assert abs(report["ate_rmse_cm"] - mapped["metrics"]["ate_rmse_cm"]) < 1e-4
+    assert abs(report["every_5"]["psnr"] - mapped["metrics"]["every_5"]["psnr"]) < 0.05
+    assert "| every_5[psnr] |" in capsys.readouterr().out
     assert main(["eval", str(tmp_path)]) == 2
 
 
@@ -148,7 +181,7 @@ def test_eval_sees_the_frames_a_strided_run_saw(scene, tmp_path, capsys):
     assert main(["eval", str(out), "--every", "1"]) == 0
     report = json.loads((out / "eval.json").read_text())
     assert report["frames"] == 6
-    assert abs(report["ate_rmse_cm"] - 100 * metrics["ate_rmse_m"]) < 1e-6
+    assert abs(report["ate_rmse_cm"] - metrics["ate_rmse_cm"]) < 1e-4
 
 
 def test_cli_demo_runs_end_to_end(tmp_path, capsys):
@@ -198,7 +231,7 @@ def test_frames_without_valid_depth_do_not_stall_the_map(scene):
 
 def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scene, monkeypatch, capsys,
                                                                             tmp_path):
-    import legslam.slam as slam_module
+    import legslam.slam.system as slam_module
 
     seq = open_dataset(scene)
 
@@ -215,11 +248,12 @@ def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scen
     batched = mapped(25, lambda done, total: calls.append((done, total)))
     assert calls == [(25, 60), (50, 60), (60, 60)]
     whole = mapped(1000)
-    assert sum(s["iterations"] for s in batched.mapping_stats) == sum(s["iterations"] for s in whole.mapping_stats)
+    assert sum(s.iterations for s in batched.mapping_stats) == sum(s.iterations for s in whole.mapping_stats)
     a, b = batched.render(batched.poses[2]), whole.render(whole.poses[2])
     np.testing.assert_allclose(a["color"], b["color"], atol=1e-5)  # the same iterations, batched
     capsys.readouterr()
-    run(seq, tmp_path, SLAMConfig(features=False, final_iters=30, map_iters_keyframe=2), progress=True)
+    run(seq, tmp_path, SLAMConfig(features=False, final_iters=30, map_iters_keyframe=2),
+        progress=Progress(len(seq)))
     assert "final mapping iterations 30/30" in capsys.readouterr().err
 
 
@@ -241,14 +275,14 @@ def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
 
 def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, scene, tmp_path):
     cfg = SLAMConfig(features=False, final_iters=60, mapping_thread=True)
-    threaded = run(open_dataset(scene), tmp_path, cfg, progress=False)
+    threaded = run(open_dataset(scene), tmp_path, cfg)
     m, slam = threaded["metrics"], threaded["slam"]
     # grown alike, never trained
     frozen = SLAMConfig(features=False, map_iters_keyframe=0, map_iters_frame=0, final_iters=0)
-    unmapped = run(open_dataset(scene), tmp_path / "frozen", frozen, progress=False)
-    assert m["ate_rmse_m"] < 0.01 and m["lost_frames"] == 0, m
+    unmapped = run(open_dataset(scene), tmp_path / "frozen", frozen)
+    assert m["ate_rmse_cm"] < 1 and m["lost_frames"] == 0, m
     # the worker trained beyond the final iterations, and the map is better for it
-    assert sum(s["iterations"] for s in slam.mapping_stats) > cfg.final_iters
+    assert sum(s.iterations for s in slam.mapping_stats) > cfg.final_iters
     assert psnr_of(threaded) > psnr_of(unmapped) + 2.0, (psnr_of(threaded), psnr_of(unmapped))
     assert slam.reference_render_s > 0
     assert threaded["timings"]["mapping.reference_render"]["total_s"] > 0
@@ -262,7 +296,7 @@ def test_mapping_thread_owns_the_map_until_finish_and_restarts_an_empty_map(scen
     with pytest.raises(RuntimeError, match="finish"):
         slam.render(np.eye(4))
     deadline = time.time() + 10
-    while slam._thread.pending and time.time() < deadline:  # the empty keyframe is applied
+    while slam.mapping.pending and time.time() < deadline:  # the empty keyframe is applied
         time.sleep(0.01)
     states = [slam.step(seq[i].rgb, seq[i].depth).state for i in range(1, 10)]
     assert states[0] == "init" and states[-4:] == ["ok"] * 4, states
@@ -272,7 +306,7 @@ def test_mapping_thread_owns_the_map_until_finish_and_restarts_an_empty_map(scen
 
 
 def test_a_failure_in_the_mapping_thread_reaches_the_tracker():
-    from legslam.mapping_thread import MappingThread
+    from legslam.slam.mapping import ThreadedMapping
 
     class Broken:
         num_gaussians, num_keyframes = 0, 0
@@ -284,13 +318,13 @@ def test_a_failure_in_the_mapping_thread_reaches_the_tracker():
         def train(self, n):
             raise ValueError("engine says no")
 
-    t = MappingThread(Broken(), [1.0, 1.0, 0.0, 0.0], (4, 4))
+    t = ThreadedMapping(Broken(), np.eye(3), (4, 4))
     t.add_keyframe(None, None, None, np.eye(4))
     deadline = time.time() + 10
     while t._error is None and time.time() < deadline:
         time.sleep(0.01)
     with pytest.raises(RuntimeError, match="engine says no"):
-        t.reference()
+        t.reference(np.eye(4))
     with pytest.raises(RuntimeError, match="engine says no"):
         t.stop()
 
@@ -303,13 +337,14 @@ def test_new_gaussians_are_seeded_on_a_grid_about_grow_width_wide():
     assert grow_stride(640) == 2  # trained at 320 wide
     assert grow_stride(160) == 1
     assert grow_stride(640, grow_width=80) == 4
-    assert grow_stride(640, mapper={"grow_stride": 1}) == 1
+    with pytest.raises(ValueError, match="mapper.grow_stride is set from grow_width; set that instead"):
+        grow_stride(640, mapper={"grow_stride": 1})
     with pytest.raises(ValueError, match="grow_width"):
         grow_stride(640, grow_width=0)
 
 
 def test_options_out_of_range_or_of_the_wrong_type_are_named(tmp_path, capsys):
-    from legslam.slam import _RANGES
+    from legslam.slam.config import _RANGES
 
     # Counts the engine would take as unsigned, and fractions, are all covered.
     assert {"final_iters", "map_iters_frame", "map_iters_keyframe", "keyframe_overlap"} <= set(_RANGES)
@@ -392,11 +427,11 @@ def _dimmed(seq):
 
 def test_trained_exposures_follow_a_darker_half_of_the_sequence(scene, tmp_path):
     seq = _dimmed(open_dataset(scene))
-    plain = run(seq, tmp_path / "plain", SLAMConfig(features=False, final_iters=30), progress=False)
+    plain = run(seq, tmp_path / "plain", SLAMConfig(features=False, final_iters=30))
     assert plain["slam"].frame_exposures() is None
     assert "psnr_exposed" not in plain["metrics"]["every_5"]
     cfg = SLAMConfig(features=False, final_iters=30, mapper={"exposure_lr": 0.01})
-    exposed = run(seq, tmp_path / "exposed", cfg, progress=False)
+    exposed = run(seq, tmp_path / "exposed", cfg)
     e = exposed["slam"].frame_exposures()
     assert e.shape == (len(seq), 2, 3)
     np.testing.assert_array_equal(e[0], [[1, 1, 1], [0, 0, 0]])  # the first keyframe's is the map's
@@ -419,7 +454,7 @@ def test_view_dependent_colour_is_learned_by_the_spherical_harmonics(scene, tmp_
         the walk than at its start."""
         cfg = SLAMConfig(features=False, final_iters=30, sh_degree=sh_degree)
         out = tmp_path / f"sh{sh_degree}"
-        result = run(seq, out, cfg, progress=False)
+        result = run(seq, out, cfg)
         m = GaussianMap.load(out / "map.ply")
         assert m.sh.shape[1] == (sh_degree + 1) ** 2
         _, poses = read_tum(out / "trajectory.txt")
@@ -465,7 +500,7 @@ def test_an_unreadable_frame_is_skipped_by_name_and_the_run_goes_on(mapped, scen
     seq = open_dataset(scene)
     assert len(poses) == len(seq) and np.allclose(stamps, [seq.timestamp(i) for i in range(len(seq))])
     # One frame fewer to track and map from: about as good as the whole run.
-    assert metrics["ate_rmse_m"] < 2 * mapped["metrics"]["ate_rmse_m"] + 0.01
+    assert metrics["ate_rmse_cm"] < 2 * mapped["metrics"]["ate_rmse_cm"] + 1
     assert psnr_of({"metrics": metrics}) > psnr_of(mapped) - 2
     assert main(["eval", str(out)]) == 0
     assert json.loads((out / "eval.json").read_text())["unreadable_frames"] == [7]
@@ -492,7 +527,7 @@ def test_a_run_that_stops_keeps_the_frames_done(scene, tmp_path, capsys, monkeyp
 
     out = tmp_path / "interrupted"
     with pytest.raises(KeyboardInterrupt):
-        run(open_dataset(scene), out, SLAMConfig(features=False), progress=False, viewer=Interrupt())
+        run(open_dataset(scene), out, SLAMConfig(features=False), viewer=Interrupt())
     assert len(read_tum(out / "trajectory.txt")[1]) == 5
     assert len(GaussianMap.load(out / "map.ply")) > 0
 
@@ -533,4 +568,4 @@ def test_frames_without_depth_are_counted_and_an_empty_map_is_said(scene, tmp_pa
     assert "warning: the map is empty: 8 of 8 frames had no valid depth" in printed.err
     assert "depth L1 n/a" in printed.out
     assert main(["eval", str(tmp_path / "none")]) == 0
-    assert "| depth_l1_cm | n/a |" in capsys.readouterr().out
+    assert "| every_5[depth_l1_cm] | n/a |" in capsys.readouterr().out

@@ -93,7 +93,7 @@ def test_features_are_recorded_once_there_is_a_compression(small_synthetic, tmp_
     cfg = SLAMConfig(feature_dim=4, pca_keyframes=1, final_iters=3, map_iters_keyframe=3,
                      map_iters_frame=1)
     result = run(open_dataset(small_synthetic, max_frames=4), tmp_path / "out", cfg,
-                 progress=False, encoder=ColourEncoder(), viewer=viewer.RerunViewer(save=rrd))
+                 encoder=ColourEncoder(), viewer=viewer.RerunViewer(save=rrd))
     frames = logged_frames(rrd)
     assert frames["/map/features"][-1] == 3
     assert "viewer (per frame, and the final map)" in result["timings"]

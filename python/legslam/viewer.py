@@ -12,45 +12,48 @@ imported here only, so a run without a viewer never loads it.
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from .pipeline import feature_basis, feature_rgb
+from .render import feature_basis, feature_rgb
+
+log = logging.getLogger("legslam")
 
 #: The point cloud shows an evenly spread subset of at most this many Gaussians.
 MAX_POINTS = 50_000
 _SH_C0 = 0.28209479177387814  # the degree-0 SH basis: colour = 0.5 + C0 * DC coefficient
 
 
+class ViewerError(RuntimeError):
+    """The viewer cannot start: the message says what to install or do instead."""
+
+
 def _import_rerun():
     try:
         import rerun
     except ImportError as e:
-        from .cli import UserError
-
-        raise UserError("--viewer rerun needs the rerun SDK: pip install 'legslam[viewer]' "
-                        f"(or pip install rerun-sdk) ({e})") from None
+        raise ViewerError("--viewer rerun needs the rerun SDK: pip install 'legslam[viewer]' "
+                          f"(or pip install rerun-sdk) ({e})") from None
     return rerun
 
 
 def _spawn(rr, rec, layout) -> None:
     """Starts the viewer app, found beside this Python (a venv's bin/, even when not on PATH)
     or on PATH."""
-    from .cli import UserError
-
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY")
                                                  or os.environ.get("WAYLAND_DISPLAY")):
-        raise UserError("no display for the rerun viewer: record with --viewer-save FILE.rrd "
-                        "and open the file where there is one (`rerun FILE.rrd`)")
+        raise ViewerError("no display for the rerun viewer: record with --viewer-save FILE.rrd "
+                          "and open the file where there is one (`rerun FILE.rrd`)")
     beside = Path(sys.executable).with_name("rerun")
     try:
         rr.spawn(recording=rec, default_blueprint=layout,
                  executable_path=str(beside) if beside.is_file() else None)
     except RuntimeError as e:
-        raise UserError(f"could not start the rerun viewer: {e}") from None
+        raise ViewerError(f"could not start the rerun viewer: {e}") from None
 
 
 def _u8(img: np.ndarray) -> np.ndarray:
@@ -83,9 +86,7 @@ class RerunViewer:
             try:
                 self.rec.save(save, default_blueprint=layout)
             except RuntimeError as e:  # e.g. no such folder
-                from .cli import UserError
-
-                raise UserError(f"cannot record to {save}: {e}") from None
+                raise ViewerError(f"cannot record to {save}: {e}") from None
         # legslam's cameras look along +z with y down (OpenCV), and so does its world frame.
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         self._gt: list[np.ndarray] = []
@@ -121,7 +122,7 @@ class RerunViewer:
         try:
             self.rec.flush()
         except RuntimeError as e:  # the viewer window was closed: the run's outputs still count
-            print(f"viewer: {e}", file=sys.stderr)
+            log.warning("viewer: %s", e)
         self.rec.disconnect()
 
     def _log_map(self, slam, pose) -> None:

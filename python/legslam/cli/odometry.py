@@ -17,7 +17,10 @@ import time
 
 import numpy as np
 
-from legslam.cli import UserError, at_least, output_file
+from .. import datasets
+from ..eval import ate_rmse, write_tum
+from ..tracking import DEFAULT_CONFIG, Odometry, fitting_levels
+from .common import UserError, at_least, output_file
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -40,10 +43,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from legslam import datasets
-    from legslam.eval import ate_rmse, write_tum
-    from legslam.tracking import DEFAULT_CONFIG, Odometry, fitting_levels
-
     at_least("--stride", args.stride)
     at_least("--downscale", args.downscale)
     at_least("--max-frames", args.max_frames)

@@ -4,16 +4,19 @@ rendered at any frame's estimated pose (or a given pose)."""
 from __future__ import annotations
 
 import argparse
-import json
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from ..query import heatmap, mask, query_from_pixel, save_overlay, segment
+from ..run_folder import RunFolder
+from .common import UserError, open_run, output_dir
+from .text_model import add_text_model_options, run_text_queries
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from .text_cli import add_text_model_options
-
     p.add_argument("run", help="a `legslam run` output folder (map.ply, trajectory.txt, camera.json)")
     p.add_argument("texts", nargs="*", help='text queries, e.g. "chair" "plant" (need the text model)')
     p.add_argument("--frame", type=int, default=0, help="show the queries at this frame's pose")
@@ -26,38 +29,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="output folder (default: RUN/queries)")
 
 
-class RunFolder:
-    """What a run folder holds, with errors that say what is missing."""
+def _render(run: RunFolder, pose):
+    return run.map.render(pose, run.K, run.width, run.height, features=True)
 
-    def __init__(self, path: Path):
-        from .cli import UserError, load_map
-        from .eval import read_tum
 
-        self.path = path
-        for name in ("map.ply", "trajectory.txt", "camera.json"):
-            if not (path / name).is_file():
-                raise UserError(f"{path} has no {name}: give a `legslam run` output folder")
-        self.map = load_map(path / "map.ply")
-        if self.map.num_features == 0:
-            raise UserError(f"{path / 'map.ply'} has no language features (run without --no-features)")
-        cam = json.loads((path / "camera.json").read_text())
-        self.K, self.width, self.height = np.array(cam["K"]), cam["width"], cam["height"]
-        _, self.poses = read_tum(path / "trajectory.txt")
-
-    def pose(self, frame: int) -> np.ndarray:
-        from .cli import UserError
-
-        if not 0 <= frame < len(self.poses):
-            raise UserError(f"frame {frame} is out of range: the run has {len(self.poses)} frames")
-        return self.poses[frame]
-
-    def render(self, pose):
-        return self.map.render(pose, self.K, self.width, self.height, features=True)
+def _pose(run: RunFolder, frame: int) -> np.ndarray:
+    if not 0 <= frame < len(run.poses):
+        raise UserError(f"frame {frame} is out of range: the run has {len(run.poses)} frames")
+    return run.poses[frame]
 
 
 def _parse_example(text: str) -> tuple[int, int, int]:
-    from .cli import UserError
-
     m = re.fullmatch(r"(\d+):(\d+),(\d+)", text.strip())
     if not m:
         raise UserError(f"--example takes N:X,Y (frame, pixel), got {text!r}")
@@ -65,15 +47,11 @@ def _parse_example(text: str) -> tuple[int, int, int]:
 
 
 def _text_queries(run: RunFolder, labels: list[str], args) -> np.ndarray:
-    from .text_cli import run_text_queries
-
-    return run_text_queries(run.path, run.map.num_features, labels, args,
+    return run_text_queries(run, labels, args,
                             hint=" Query by example (--example N:X,Y) works without it.")
 
 
 def _legend_image(labels_img: np.ndarray, names: list[str], rgb: np.ndarray) -> np.ndarray:
-    import cv2
-
     rng = np.random.default_rng(0)
     colours = rng.integers(40, 255, (len(names), 3)).astype(np.uint8)
     seg = rgb.copy()
@@ -88,15 +66,10 @@ def _legend_image(labels_img: np.ndarray, names: list[str], rgb: np.ndarray) -> 
 
 
 def run(args) -> int:
-    import cv2
-
-    from .cli import UserError, output_dir
-    from .query import heatmap, mask, query_from_pixel, save_overlay, segment
-
     run_dir = Path(args.run)
-    if not run_dir.is_dir():
-        raise UserError(f"{run_dir} is not a folder")
-    r = RunFolder(run_dir)
+    r = open_run(run_dir)
+    if r.map.num_features == 0:
+        raise UserError(f"{run_dir / 'map.ply'} has no language features (run without --no-features)")
     if args.pose:
         try:
             pose = np.loadtxt(args.pose).reshape(4, 4)
@@ -104,12 +77,12 @@ def run(args) -> int:
             raise UserError(f"--pose {args.pose}: not a readable 4x4 matrix ({e})") from e
         where = "pose"
     else:
-        pose = r.pose(args.frame)
+        pose = _pose(r, args.frame)
         where = f"frame{args.frame:06d}"
     if not (args.texts or args.example or args.labels):
         raise UserError("nothing to query: give text queries, --example N:X,Y or --labels a,b,c")
     out = output_dir(Path(args.out) if args.out else run_dir / "queries")
-    view = r.render(pose)
+    view = _render(r, pose)
     rgb = (np.clip(view.color, 0, 1) * 255).astype(np.uint8)
 
     queries: list[tuple[str, np.ndarray]] = []
@@ -117,7 +90,7 @@ def run(args) -> int:
         n, x, y = _parse_example(ex)
         if not (0 <= x < r.width and 0 <= y < r.height):
             raise UserError(f"--example pixel {x},{y} is outside the {r.width}x{r.height} image")
-        src = r.render(r.pose(n))
+        src = _render(r, _pose(r, n))
         queries.append((f"example_{n}_{x}_{y}", query_from_pixel(src.features, x, y, radius=2)))
     if args.texts:
         q = _text_queries(r, args.texts, args)

@@ -6,7 +6,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from ..map import GaussianMap
+from ..render import feature_basis, feature_rgb
+from ..run_folder import CAMERA, MAP, TRAJECTORY, read_camera, read_trajectory
+from .common import UserError, at_least, output_dir
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,40 +26,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="output folder (default: RUN/views)")
 
 
-def run(args) -> int:
-    import json
-
-    import cv2
-
-    from .cli import UserError, at_least, load_map, output_dir
-    from .eval import TrajectoryError, read_tum
-    from .pipeline import feature_basis, feature_rgb
-
-    src = Path(args.run)
-    map_path = src / "map.ply" if src.is_dir() else src
-    if not map_path.is_file():
-        raise UserError(f"no map at {map_path}")
-    run_dir = map_path.parent
-    at_least("--every", args.every)
-    cam_file = run_dir / "camera.json"
+def _camera(args, run_dir: Path) -> tuple:
+    """(K, width, height) from --intrinsics and --size, else from the run's camera.json."""
     if args.intrinsics and args.size:
         try:
             fx, fy, cx, cy = (float(v) for v in args.intrinsics.split(","))
             width, height = (int(v) for v in args.size.lower().split("x"))
         except ValueError as e:
             raise UserError(f"--intrinsics takes fx,fy,cx,cy and --size WIDTHxHEIGHT ({e})") from e
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
-    elif cam_file.is_file():
-        cam = json.loads(cam_file.read_text())
-        K, width, height = np.array(cam["K"]), cam["width"], cam["height"]
-    else:
-        raise UserError(f"no camera.json beside {map_path}: give --intrinsics fx,fy,cx,cy and --size WxH")
-    traj = Path(args.trajectory) if args.trajectory else run_dir / "trajectory.txt"
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]), width, height
+    if not (run_dir / CAMERA).is_file():
+        raise UserError(f"no {CAMERA} beside the map in {run_dir}: give --intrinsics fx,fy,cx,cy "
+                        "and --size WxH")
+    return read_camera(run_dir / CAMERA)[:3]
+
+
+def run(args) -> int:
+    src = Path(args.run)
+    map_path = src / MAP if src.is_dir() else src
+    if not map_path.is_file():
+        raise UserError(f"no map at {map_path}")
+    run_dir = map_path.parent
+    at_least("--every", args.every)
     try:
-        _, poses = read_tum(traj)
-    except (OSError, TrajectoryError) as e:
-        raise UserError(f"cannot read the trajectory {traj}: {e}") from e
-    m = load_map(map_path)
+        K, width, height = _camera(args, run_dir)
+        _, poses = read_trajectory(Path(args.trajectory) if args.trajectory else run_dir / TRAJECTORY)
+        m = GaussianMap.load(map_path)
+    except (OSError, ValueError) as e:  # RunFolderError is a ValueError
+        raise UserError(str(e)) from e
     out = output_dir(Path(args.out) if args.out else run_dir / "views")
     features = m.num_features > 0 and not args.no_features
     basis = None

@@ -3,9 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
+
+from ..datasets import DatasetError, open as open_dataset
+from ..eval import every_key
+from ..pipeline import run as run_pipeline
+from ..run_folder import write_json
+from ..slam import SLAMConfig
+from ..viewer import RerunViewer, ViewerError
+from .common import UserError, at_least, output_dir
+from .progress import Progress
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -18,6 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
+    """The options of a SLAM run, shared with `legslam demo`."""
     p.add_argument("--out", default=None, help="output folder (default: legslam-out/<name>)")
     p.add_argument("--config", default=None, help="a .toml/.json/.yaml file overriding defaults")
     p.add_argument("--no-features", action="store_true",
@@ -38,22 +47,18 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
 
 
 def _viewer(args):
-    from .cli import UserError
-
     if args.viewer is None:
         if args.viewer_save:
             raise UserError("--viewer-save needs --viewer rerun")
         return None
-    from .viewer import RerunViewer
+    try:
+        return RerunViewer(save=args.viewer_save)
+    except ViewerError as e:
+        raise UserError(str(e)) from e
 
-    return RerunViewer(save=args.viewer_save)
 
-
-def run_config(args):
+def run_config(args) -> SLAMConfig:
     """The SLAMConfig the options ask for (checked before any frame is read)."""
-    from .cli import UserError, at_least
-    from .slam import SLAMConfig
-
     overrides = {"features": False} if args.no_features else {}
     if args.realtime:
         overrides["mapping_thread"] = True
@@ -67,17 +72,17 @@ def run_config(args):
         raise UserError(str(e)) from e
 
 
-def run_sequence(seq, name: str, args, config) -> int:
-    from .cli import UserError, output_dir
-    from .datasets import DatasetError
-    from .pipeline import run
-
+def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
+    """Runs SLAM over `seq` into --out (default legslam-out/NAME) and prints the figures."""
     out = output_dir(args.out or Path("legslam-out") / name)
     viewer = _viewer(args)
     try:
-        result = run(seq, out, config, progress=not args.quiet, viewer=viewer)
+        result = run_pipeline(seq, out, config, progress=None if args.quiet else Progress(len(seq)),
+                              viewer=viewer)
     # The encoder model not in the cache, the first frame or too many in a row unreadable.
     except (FileNotFoundError, DatasetError) as e:
+        raise UserError(str(e)) from e
+    except ViewerError as e:
         raise UserError(str(e)) from e
     m, t = result["metrics"], result["timings"]
     unreadable = f" ({len(m['unreadable_frames'])} unreadable)" if m["unreadable_frames"] else ""
@@ -86,10 +91,10 @@ def run_sequence(seq, name: str, args, config) -> int:
     if m["gaussians"] == 0:
         print(f"warning: the map is empty: {m['frames_without_depth']} of {m['frames']} frames "
               "had no valid depth (check the depth files and their scale)", file=sys.stderr)
-    if "ate_rmse_m" in m:
-        print(f"ATE RMSE {100 * m['ate_rmse_m']:.2f} cm")
-    every = next(k for k in m if k.startswith("every_"))
-    e, n = m[every], int(every.split("_")[1])
+    if "ate_rmse_cm" in m:
+        print(f"ATE RMSE {m['ate_rmse_cm']:.2f} cm")
+    n = m["every"]
+    e = m[every_key(n)]
 
     def fmt(v, spec):  # a figure no frame could give (no readable frame, no valid depth) is None
         return "n/a" if v is None else format(v, spec)
@@ -98,14 +103,11 @@ def run_sequence(seq, name: str, args, config) -> int:
     print("per-stage mean ms/frame: " + "  ".join(
         f"{k} {t[k]['mean_ms']:.1f}" for k in ("preprocessing", "tracking", "mapping")))
     print(f"outputs in {out}/: trajectory.txt map.ply metrics.json timings.json renders/")
-    (out / "summary.json").write_text(json.dumps({"metrics": m, "fps": t["fps"]}, indent=2))
+    write_json(out / "summary.json", {"metrics": m, "fps": t["fps"]})
     return 0
 
 
 def run(args) -> int:
-    from .cli import UserError, at_least
-    from .datasets import DatasetError, open as open_dataset
-
     at_least("--stride", args.stride)
     at_least("--max-frames", args.max_frames)
     at_least("--downscale", args.downscale)

@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import argparse
 import zipfile
-from pathlib import Path
 
 import numpy as np
+
+from ..features import PCA, Talk2DinoProjection, TextEncoder
+from ..query import text_queries
+from ..run_folder import PCA_FILE, RunFolder
+from .common import UserError
 
 
 def add_text_model_options(p: argparse.ArgumentParser) -> None:
@@ -17,26 +21,23 @@ def add_text_model_options(p: argparse.ArgumentParser) -> None:
                    help="Talk2DINO projection weights (.npz) for a ViT-B/14 map")
 
 
-def run_text_queries(run_dir: Path, num_features: int, labels: list[str], args, hint: str = "") -> np.ndarray:
-    """Query vectors [C, num_features] for the labels, in the space of the run's map (its
-    pca.npz); UserError, ending with `hint`, when the text model or the compression is missing."""
-    from .cli import UserError
-    from .features import PCA, Talk2DinoProjection, TextEncoder
-    from .query import text_queries
-
+def run_text_queries(run: RunFolder, labels: list[str], args, hint: str = "") -> np.ndarray:
+    """Query vectors [C, K] for the labels, in the space of the run's map (its pca.npz);
+    UserError, ending with `hint`, when the text model or the compression is missing."""
     try:
         encoder = TextEncoder(args.text_model)
     except FileNotFoundError as e:
         raise UserError(f"text queries need the CLIP text model: {e}.{hint}") from e
-    pca_path = Path(run_dir) / "pca.npz"
+    pca_path = run.path / PCA_FILE
     if not pca_path.is_file():
-        raise UserError(f"{run_dir} has no pca.npz: text queries need the run's feature compression")
+        raise UserError(f"{run.path} has no {PCA_FILE}: text queries need the run's feature compression")
     try:
         projection = Talk2DinoProjection.load(args.projection) if args.projection else None
         pca = PCA.load(pca_path)
     except (OSError, ValueError, zipfile.BadZipFile) as e:  # not there, or not what was saved
         raise UserError(str(e)) from e
     q = text_queries(labels, encoder, projection, pca)
-    if q.shape[1] != num_features:
-        raise UserError(f"the text model gives {q.shape[1]}-d queries, the map has {num_features}-d features")
+    k = run.map.num_features
+    if q.shape[1] != k:
+        raise UserError(f"the text model gives {q.shape[1]}-d queries, the map has {k}-d features")
     return q

@@ -7,12 +7,14 @@ them, `_pose` and `_timestamp`. Everything it returns is at the dataset's native
 
 from __future__ import annotations
 
-import sys
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Optional, Sequence as SequenceT
 
 import numpy as np
+
+log = logging.getLogger("legslam")
 
 # Label value for pixels without a class (unlabelled, or a class outside the benchmark set).
 IGNORE_LABEL = -1
@@ -280,7 +282,7 @@ def paths_sorted(paths: SequenceT[Path]) -> list:
 
 def each_readable(seq) -> Iterator[tuple[int, Optional[Frame]]]:
     """(k, frame) for every frame of `seq` in order; frame is None where it cannot be read,
-    with a warning on stderr that says why. Raises DatasetError once MAX_UNREADABLE_IN_A_ROW
+    with a warning (the "legslam" logger) that says why. Raises DatasetError once MAX_UNREADABLE_IN_A_ROW
     frames in a row could not be read."""
     in_a_row = 0
     for k in range(len(seq)):
@@ -291,7 +293,7 @@ def each_readable(seq) -> Iterator[tuple[int, Optional[Frame]]]:
             if in_a_row >= MAX_UNREADABLE_IN_A_ROW:
                 raise DatasetError(f"{in_a_row} frames in a row cannot be read (frames "
                                    f"{k - in_a_row + 1}-{k}), the last: {e}") from e
-            print(f"warning: frame {k} skipped: {e}", file=sys.stderr)
+            log.warning("frame %d skipped: %s", k, e)
             yield k, None
             continue
         in_a_row = 0

@@ -1,6 +1,5 @@
-"""`legslam export-models`: the paper's models as ONNX, for machines with torch and the internet.
-
-Writes into --out (default: the model cache, so the names resolve):
+"""The paper's models as ONNX, for machines with torch and the internet (`legslam
+export-models`). Written into a folder (by default the model cache, so the names resolve):
   dinov2_vitb14_reg.onnx  DINOv2 ViT-B/14 with registers (torch.hub facebookresearch/dinov2):
                           input `input_image` [B,3,S,S] (S = --input-size, fixed; the paper: 518),
                           output `x_norm_patchtokens` [B,(S/14)^2,768]
@@ -14,42 +13,16 @@ export because DINOv2's position-embedding interpolation is traced with constant
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from legslam import models
 
+log = logging.getLogger("legslam")
+
 OPSET = 17
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("--out", type=Path, default=None, help="output directory (default: the model cache)")
-    parser.add_argument("--input-size", type=int, default=518, help="DINOv2 input size, a multiple of 14 (default 518)")
-    parser.add_argument("--only", choices=["dinov2", "clip"], help="export only one of the two models")
-
-
-def run(args) -> int:
-    from legslam.cli import UserError
-
-    if args.input_size % 14 or args.input_size < 14:
-        raise UserError(f"--input-size must be a positive multiple of 14, got {args.input_size}")
-    try:
-        import torch
-    except ImportError as e:
-        raise UserError("export-models needs torch (pip install torch open_clip_torch) and the internet") from e
-    out = args.out or models.models_dir()
-    out.mkdir(parents=True, exist_ok=True)
-    torch.set_grad_enabled(False)
-    try:
-        if args.only in (None, "dinov2"):
-            export_dinov2(out, args.input_size)
-        if args.only in (None, "clip"):
-            export_clip_text(out)
-    except ImportError as e:
-        raise UserError(f"{e} (pip install torch open_clip_torch)") from e
-    print(f"models and manifest.json written to {out}")
-    return 0
 
 
 def _export(model, forward, example, out: Path, filename: str, io: tuple, meta: dict, **info) -> None:
@@ -93,13 +66,13 @@ def _export(model, forward, example, out: Path, filename: str, io: tuple, meta: 
     err = float(np.abs(got - expected).max())
     tmp.replace(out / filename)
     models.record_in_manifest(out, filename, torch_version=torch.__version__, max_abs_diff_vs_torch=err, **info)
-    print(f"{filename}: max |onnxruntime - torch| = {err:.2e}")
+    log.info("%s: max |onnxruntime - torch| = %.2e", filename, err)
 
 
 def export_dinov2(out: Path, input_size: int) -> None:
     import torch
 
-    print("loading dinov2_vitb14_reg from torch.hub ...")
+    log.info("loading dinov2_vitb14_reg from torch.hub ...")
     dino = torch.hub.load("facebookresearch/dinov2", "dinov2_vitb14_reg").eval()
     _export(
         dino,
@@ -121,7 +94,7 @@ def export_clip_text(out: Path) -> None:
 
     from legslam.features.tokenizer import tokenize
 
-    print("loading OpenAI CLIP ViT-B/16 with open_clip ...")
+    log.info("loading OpenAI CLIP ViT-B/16 with open_clip ...")
     clip = open_clip.create_model("ViT-B-16", pretrained="openai").eval()
     _export(
         clip,

@@ -1,9 +1,12 @@
-"""Mapping in a worker thread, so that tracking alone sets the frame rate.
+"""Where keyframes go and how the map is trained while frames come in, behind one interface:
+`InlineMapping` trains after every frame (the frame waits for it), `ThreadedMapping` trains in
+a worker thread so that tracking alone sets the frame rate.
 
-The tracker (main thread) queues keyframes and feature grids; the worker applies them, trains
-the map in small batches on whatever keyframes it has and, after each batch, renders the map at
-the latest tracked pose as the tracker's next reference. While the worker runs, only it touches
-the mapper; the engine releases the GIL, so both threads compute at once.
+With a thread, the tracker (main thread) queues keyframes and feature grids; the worker
+applies them, trains the map in small batches on whatever keyframes it has and, after each
+batch, renders the map at the latest tracked pose as the tracker's next reference. While the
+worker runs, only it touches the mapper; the engine releases the GIL, so both threads compute
+at once.
 """
 
 from __future__ import annotations
@@ -15,15 +18,63 @@ from typing import Optional
 
 import numpy as np
 
+__all__ = ["InlineMapping", "ThreadedMapping"]
 
-class MappingThread:
-    def __init__(self, mapper, K_track: list, track_size: tuple, batch: int = 2):
+
+class InlineMapping:
+    """Mapping in the caller's thread: `iters_keyframe` iterations after a keyframe,
+    `iters_frame` after any other tracked frame; references rendered on demand."""
+
+    def __init__(self, mapper, K_track: np.ndarray, track_size: tuple, iters_keyframe: int,
+                 iters_frame: int):
+        self._mapper = mapper
+        self._K_track, self._track_size = K_track, track_size
+        self._iters = (iters_frame, iters_keyframe)
+        #: The engine's report of every training call.
+        self.stats: list = []
+        self.reference_s = 0.0
+
+    def add_keyframe(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> int:
+        """Adds a keyframe (colour float32 in [0, 1]); returns its id."""
+        return self._mapper.add_keyframe(rgb, depth, K, pose)[0]
+
+    def set_features(self, kf_id: int, grid: np.ndarray) -> None:
+        self._mapper.set_features(kf_id, grid)
+
+    def after_frame(self, pose: np.ndarray, keyframe: bool) -> None:
+        """A frame was tracked at `pose`: train."""
+        self.stats.append(self._mapper.train(self._iters[keyframe]))
+
+    def reference(self, predicted: np.ndarray) -> tuple:
+        """(pose, render at the tracking size) to track against: the map at `predicted`."""
+        return predicted, self._mapper.render(predicted, self._K_track, *self._track_size)
+
+    def keeps_up(self, iterations: int) -> bool:
+        """Whether the newest keyframe has had `iterations`: always, inline."""
+        return True
+
+    @property
+    def empty(self) -> bool:
+        return self._mapper.num_gaussians == 0
+
+    @property
+    def num_gaussians(self) -> int:
+        return self._mapper.num_gaussians
+
+    def stop(self) -> None:
+        """Nothing runs in the background: the mapper is the caller's already."""
+
+
+class ThreadedMapping:
+    """Mapping in a worker thread, `batch` iterations at a time over the keyframes it has."""
+
+    def __init__(self, mapper, K_track: np.ndarray, track_size: tuple, batch: int = 2):
         self._mapper = mapper
         self._K_track, self._track_size = K_track, track_size
         self._batch = batch
         self._commands: queue.SimpleQueue = queue.SimpleQueue()
         self._lock = threading.Lock()
-        self._reference: Optional[tuple] = None  # (pose, render dict)
+        self._reference: Optional[tuple] = None  # (pose, render)
         self._reference_pose: Optional[np.ndarray] = None
         self._first_id = mapper.num_keyframes
         self._submitted = 0
@@ -32,46 +83,50 @@ class MappingThread:
         self._iterations_since_keyframe = 0
         self._error: Optional[BaseException] = None
         self._stopping = threading.Event()
-        #: Per-batch mapper.train() reports, and seconds spent on tracking references.
-        self.stats: list[dict] = []
+        #: The engine's report of every batch, and seconds spent rendering references.
+        self.stats: list = []
         self.reference_s = 0.0
         self._thread = threading.Thread(target=self._run, name="legslam-mapping", daemon=True)
         self._thread.start()
 
     # --- called by the tracker ---------------------------------------------------------------
 
-    def add_keyframe(self, rgb: np.ndarray, depth: np.ndarray, K: list, pose: np.ndarray) -> tuple:
-        """Queues a keyframe; returns (the id the mapper will give it, None: how many Gaussians
-        it adds is known only once the worker has applied it)."""
+    def add_keyframe(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> int:
+        """Queues a keyframe; returns the id the mapper will give it."""
         self._check()
         kf_id = self._first_id + self._submitted
         self._submitted += 1
         self._commands.put(("add_keyframe", (rgb, depth, K, pose)))
-        return kf_id, None
+        return kf_id
 
     def set_features(self, kf_id: int, grid: np.ndarray) -> None:
         self._check()
         self._commands.put(("set_features", (kf_id, grid)))
 
-    def track_at(self, pose: np.ndarray) -> None:
-        """The pose the next reference is rendered at (the latest tracked one)."""
+    def after_frame(self, pose: np.ndarray, keyframe: bool) -> None:
+        """A frame was tracked at `pose`: the next reference is rendered there."""
         self._reference_pose = pose
 
-    def reference(self) -> Optional[tuple]:
-        """(pose, render at the tracking size) of the latest batch, or None before the first."""
+    def reference(self, predicted: np.ndarray) -> tuple:
+        """(pose, render at the tracking size) of the latest batch, (None, None) before the
+        first."""
         self._check()
         with self._lock:
-            return self._reference
+            return self._reference or (None, None)
 
     @property
     def pending(self) -> bool:
         """Whether queued keyframes have not reached the map yet."""
         return self._applied < self._submitted
 
-    def trained(self, iterations: int) -> bool:
+    def keeps_up(self, iterations: int) -> bool:
         """Whether every queued keyframe is in the map and the latest has had this many
-        iterations since: the mapper keeps up."""
+        iterations since."""
         return not self.pending and self._iterations_since_keyframe >= iterations
+
+    @property
+    def empty(self) -> bool:
+        return not self.pending and self._num_gaussians == 0
 
     @property
     def num_gaussians(self) -> int:

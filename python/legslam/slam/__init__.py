@@ -1,0 +1,11 @@
+"""The SLAM loop and its parts: `SLAM` (a short `step` per frame), `SLAMConfig` (every option,
+with the engine's mapper and tracker sections), and the components the loop runs: the tracking
+policy, the keyframe policy, the feature feed, and inline or threaded mapping.
+
+    from legslam.slam import SLAM, SLAMConfig
+"""
+
+from .config import DERIVED, MapperOptions, SLAMConfig, TrackerOptions
+from .system import SLAM, StepResult
+
+__all__ = ["SLAM", "SLAMConfig", "StepResult", "MapperOptions", "TrackerOptions", "DERIVED"]

@@ -1,0 +1,288 @@
+"""Every knob of a SLAM run: `SLAMConfig`, with typed sections for the engine's mapper and
+tracker (`MapperOptions`, `TrackerOptions`) generated from the engine's own option tables, so
+that names, kinds and defaults have one source. `DERIVED` is the one place that says which
+option wins where SLAMConfig sets engine options itself.
+
+    cfg = SLAMConfig(final_iters=500, mapper={"exposure_lr": 0.01})
+    cfg = SLAMConfig.from_file("run.toml")      # [mapper] and [tracker] tables are the sections
+"""
+
+from __future__ import annotations
+
+import json
+import numbers
+import os
+from dataclasses import asdict, dataclass, field, fields, make_dataclass
+from pathlib import Path
+from typing import Optional
+
+from .. import _core
+from ..tracking import fitting_levels
+
+__all__ = ["SLAMConfig", "MapperOptions", "TrackerOptions", "DERIVED"]
+
+#: Engine options that SLAMConfig sets from options of its own: giving one in a section is an
+#: error naming the option to set instead, so neither silently overrides the other.
+DERIVED = {
+    "mapper": {"num_features": "feature_dim (or features = false)", "sh_degree": "sh_degree",
+               "levels": "map_width", "finest_level": "map_width", "grow_level": "map_width",
+               "grow_stride": "grow_width"},
+    "tracker": {},
+}
+
+#: Where a SLAM run's defaults differ from the engine's: it tracks images already shrunk to
+#: `track_width`, from their own resolution, through as many levels as they have room for
+#: (None: as many as keep the coarsest at least 8 pixels).
+SLAM_DEFAULTS = {"mapper": {}, "tracker": {"finest_level": 0, "levels": None}}
+
+_INF = float("inf")
+_NUMBER = {int: numbers.Integral, float: numbers.Real}
+_KIND_NAMES = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
+               list: "a list of integers", dict: "a table of options"}
+
+
+def _is(kind, v) -> bool:
+    """Whether `v` is a value of `kind` (numpy scalars too, but never True/False for numbers)."""
+    if kind in _NUMBER:
+        return isinstance(v, _NUMBER[kind]) and not isinstance(v, bool)
+    if kind is list:
+        return isinstance(v, (list, tuple)) and all(_is(int, x) for x in v)
+    return isinstance(v, kind)
+
+
+def _section_class(section: str, engine_defaults: dict, doc: str) -> type:
+    """A dataclass of the engine's options of `section`, less the derived ones, with the SLAM's
+    defaults where they differ."""
+    own = SLAM_DEFAULTS[section]
+    specs = []
+    for name, default in engine_defaults.items():
+        if name in DERIVED[section]:
+            continue
+        default = own.get(name, default)
+        kind = type(engine_defaults[name])
+        annotation = Optional[kind] if default is None else kind
+        value = field(default_factory=lambda d=default: list(d)) if kind is list else field(default=default)
+        specs.append((name, annotation, value))
+
+    def from_dict(cls, data: dict, source: str = "config"):
+        """The section from a dict (a config file's table): unknown and derived names are
+        errors that say what to do instead."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{section} must be a table of options, got {data!r}")
+        for name in data:
+            if name in DERIVED[section]:
+                raise ValueError(f"{source}: {section}.{name} is set from {DERIVED[section][name]}; "
+                                 f"set that instead")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown {section} option(s) {', '.join(map(str, unknown))}; "
+                             f"known: {', '.join(sorted(known))}")
+        return cls(**data)
+
+    def check(self) -> None:
+        """Raises ValueError naming the first option of the wrong kind or value (values are
+        checked by the engine)."""
+        for f in fields(self):
+            v, kind = getattr(self, f.name), type(engine_defaults[f.name])
+            if not ((v is None and f.default is None) or _is(kind, v)):
+                raise ValueError(f"{section}.{f.name} must be {_KIND_NAMES[kind]}, got {v!r}")
+        checker = {"mapper": _core.mapper_options, "tracker": _core.tracker_options}[section]
+        try:
+            checker(self.engine())
+        except ValueError as e:
+            raise ValueError(f"{section}: {e}") from None
+
+    def engine(self) -> dict:
+        """The options given to the engine (those left to the image size omitted)."""
+        return {f.name: _plain(getattr(self, f.name)) for f in fields(self)
+                if getattr(self, f.name) is not None}
+
+    cls = make_dataclass(
+        f"{section.capitalize()}Options", specs,
+        namespace={"from_dict": classmethod(from_dict), "check": check, "engine": engine,
+                   "__doc__": doc, "__module__": __name__})
+    return cls
+
+
+def _plain(v):
+    """Numpy scalars as Python numbers, which the engine's option tables take."""
+    if isinstance(v, (list, tuple)):
+        return [int(x) for x in v]
+    if isinstance(v, bool) or not isinstance(v, numbers.Number):
+        return v
+    return int(v) if isinstance(v, numbers.Integral) else float(v)
+
+
+MapperOptions = _section_class("mapper", dict(_core.mapper_options()), """The mapper's options
+(the engine's `MapperConfig`, crates/legslam-core/src/map/train.rs, documents each): learning
+rates, loss weights, growth, pruning, densification, keyframe window, pose and exposure
+refinement. Those in `DERIVED["mapper"]` are set from SLAMConfig's own options.""")
+
+TrackerOptions = _section_class("tracker", dict(_core.tracker_options()), """The tracker's
+options (the engine's `TrackerConfig`, crates/legslam-core/src/track/mod.rs, documents each):
+pyramid, iterations, robust thresholds, loss verdicts. `finest_level` defaults to 0 and
+`levels` to None (as many as the tracking size has room for): the SLAM tracks images already
+shrunk to `track_width`.""")
+
+
+@dataclass
+class SLAMConfig:
+    """Every knob of a run, with defaults for a 2-core CPU. `mapper` and `tracker` are the
+    engine's options (a dict is taken too); `DERIVED` lists those set from the fields here."""
+
+    #: Tracking runs at about this width (frame and map render alike; full resolution for
+    #: narrower input).
+    track_width: int = 320
+    #: New keyframe when the camera moved this far (m) or turned this much (degrees) since the
+    #: last one, or the map covers less than `keyframe_overlap` of the pixels where the frame
+    #: measured depth, or `keyframe_max_gap` frames passed.
+    keyframe_translation: float = 0.1
+    keyframe_rotation: float = 10.0
+    keyframe_overlap: float = 0.9
+    keyframe_max_gap: int = 15
+    #: Mapping iterations after a new keyframe, and after every other tracked frame.
+    map_iters_keyframe: int = 15
+    map_iters_frame: int = 2
+    #: The map trains at the coarsest pyramid level at least this wide (or full resolution).
+    map_width: int = 320
+    #: New Gaussians are seeded on a grid about this many columns wide (every pixel of a
+    #: narrower training level). On 7-Scenes, 150 frames at 320x240, seeding every other pixel
+    #: gave a better map (22.9 against 22.6 dB) from a quarter of the Gaussians, 2.3x faster.
+    grow_width: int = 160
+    #: Degree of the spherical harmonics of each Gaussian's colour (0: one colour seen alike
+    #: from everywhere; 3, as LEG-SLAM and 3DGS, 16 coefficients a channel). On 7-Scenes, 200
+    #: frames: 23.3 / 24.1 / 25.0 / 25.8 dB with degree 0 / 1 / 2 / 3, at the same speed
+    #: (view-dependent colour can follow gloss, and an exposure that changes with the view).
+    sh_degree: int = 3
+    #: Mapping iterations once the sequence has ended, on keyframes drawn from all of them.
+    final_iters: int = 100
+    #: Map in a worker thread while this one tracks (real time: the frame rate is the
+    #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
+    #: time, on a thread pool of its own). Low overlap then makes a keyframe only once the
+    #: previous one has had `map_iters_keyframe` iterations; `map_iters_frame` is unused.
+    #: The tracker's reference is the map rendered after each batch at the latest tracked
+    #: pose.
+    mapping_thread: bool = False
+    mapping_batch: int = 2
+    #: With a mapping thread: the mapper's threads (0: one per core); the tracker then runs
+    #: on one thread of its own.
+    mapping_threads: int = 0
+    #: A rendered pixel is trusted as a tracking reference where its alpha exceeds this; below
+    #: `min_reference_coverage` of trusted pixels, the last keyframe is the reference instead.
+    reference_alpha: float = 0.8
+    min_reference_coverage: float = 0.5
+    #: Language features: encoder ("default", a model name or an ONNX path), its input size,
+    #: the compressed dimension K, and how many keyframes' patches fit the PCA.
+    features: bool = True
+    encoder: str = "default"
+    encoder_size: int = 224
+    encoder_threads: int = 1
+    feature_dim: int = 64
+    pca_keyframes: int = 3
+    #: A PCA fitted beforehand (.npz from legslam.features.PCA.save) instead of fitting one.
+    pca_path: Optional[str] = None
+    mapper: MapperOptions = field(default_factory=MapperOptions)
+    tracker: TrackerOptions = field(default_factory=TrackerOptions)
+
+    def __post_init__(self):
+        for name, cls in (("mapper", MapperOptions), ("tracker", TrackerOptions)):
+            v = getattr(self, name)
+            if isinstance(v, dict):
+                setattr(self, name, cls.from_dict(v))
+        self.check()
+
+    def check(self) -> None:
+        """Raises ValueError naming the first option of the wrong type or out of its range."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in ("mapper", "tracker"):
+                if not isinstance(v, (MapperOptions, TrackerOptions)[f.name == "tracker"]):
+                    raise ValueError(f"{f.name} must be a table of options, got {v!r}")
+                v.check()
+                continue
+            kind = type(f.default) if f.default is not None else (str, os.PathLike)
+            if f.name == "pca_path":
+                ok = v is None or isinstance(v, kind)
+            else:
+                ok = _is(kind, v)
+            if not ok:
+                raise ValueError(f"{f.name} must be {_KIND_NAMES.get(kind, 'a path')}, got {v!r}")
+            low, high = _RANGES.get(f.name, (None, None))
+            if low is not None and not low <= v <= high:  # also false for NaN
+                bound = f"at least {low}" if high == _INF else f"in [{low}, {high}]"
+                raise ValueError(f"{f.name} must be {bound}, got {v}")
+
+    def mapper_options(self, width: int) -> dict:
+        """The engine's mapper options for frames `width` pixels wide: the section's, and the
+        derived ones (`DERIVED`)."""
+        # Train and grow at about `map_width` (full resolution for smaller inputs): what two
+        # cores afford per iteration.
+        level = 0
+        while width >> (level + 1) >= self.map_width:
+            level += 1
+        return {**self.mapper.engine(),
+                "num_features": self.feature_dim if self.features else 0,
+                "sh_degree": self.sh_degree, "finest_level": level, "grow_level": level,
+                "levels": level + 3,
+                "grow_stride": max(1, round((width >> level) / self.grow_width))}
+
+    def tracker_options(self, width: int, height: int) -> dict:
+        """The engine's tracker options for tracking images of width x height."""
+        opts = self.tracker.engine()
+        if self.tracker.levels is None:
+            opts["levels"] = fitting_levels(width, height, self.tracker.finest_level)
+        return opts
+
+    @classmethod
+    def from_file(cls, path, **overrides) -> "SLAMConfig":
+        """Reads a .toml, .json or .yaml file (only the keys given change a default)."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"no config file at {path}")
+        text = path.read_text()
+        if path.suffix == ".toml":
+            import tomllib
+            data = tomllib.loads(text)
+        elif path.suffix == ".json":
+            data = json.loads(text)
+        elif path.suffix in (".yaml", ".yml"):
+            try:
+                import yaml
+            except ImportError:
+                raise ValueError(f"{path}: reading YAML needs PyYAML (pip install pyyaml); "
+                                 "TOML and JSON need nothing") from None
+            data = yaml.safe_load(text) or {}
+        else:
+            raise ValueError(f"{path}: config files are .toml, .json or .yaml")
+        return cls.from_dict({**data, **overrides}, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "config") -> "SLAMConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"{source}: unknown option(s) {', '.join(unknown)}; "
+                             f"known: {', '.join(sorted(known))}")
+        data = dict(data)
+        for name, section in (("mapper", MapperOptions), ("tracker", TrackerOptions)):
+            if name in data:
+                data[name] = section.from_dict(data[name], source)
+        return cls(**data)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+#: Each numeric option's range (inclusive).
+_RANGES = {
+    "track_width": (16, _INF), "map_width": (16, _INF), "grow_width": (16, _INF),
+    "sh_degree": (0, 3),
+    "keyframe_translation": (0.0, _INF), "keyframe_rotation": (0.0, _INF),
+    "keyframe_overlap": (0.0, 1.0), "keyframe_max_gap": (1, _INF),
+    "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
+    "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
+    "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0),
+    "encoder_size": (28, _INF), "encoder_threads": (0, _INF), "feature_dim": (1, _INF),
+    "pca_keyframes": (1, _INF),
+}

@@ -1,0 +1,72 @@
+"""Keyframe features, off the tracking path: an encoder in a worker thread, a PCA fitted on the
+first keyframes' patches (or loaded), and the compressed grids handed to the map."""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import numpy as np
+
+from ..features import PCA, AsyncExtractor, Encoder
+
+__all__ = ["FeatureFeed"]
+
+
+class FeatureFeed:
+    """Features for keyframes: `submit` a keyframe's colour, `collect` what is ready (each
+    grid goes to `sink(keyframe id, grid)` once there is a PCA), `drain` at the end.
+    `timings` gets "extraction" and "compression" milliseconds per keyframe."""
+
+    def __init__(self, config, sink: Callable[[int, np.ndarray], None], timings: dict,
+                 encoder=None):
+        c = config
+        self.config, self.sink, self.timings = c, sink, timings
+        if encoder is None:
+            encoder = Encoder(c.encoder, input_size=c.encoder_size, threads=c.encoder_threads)
+        self.extractor = AsyncExtractor(encoder)
+        self.pca = PCA.load(c.pca_path) if c.pca_path else None
+        if self.pca is not None and self.pca.n_components != c.feature_dim:
+            raise ValueError(f"{c.pca_path} compresses to {self.pca.n_components} dimensions, "
+                             f"feature_dim is {c.feature_dim}")
+        self._waiting: list = []  # (keyframe id, raw features) until the PCA is fitted
+
+    def submit(self, kf_id: int, rgb: np.ndarray) -> None:
+        self.extractor.submit(kf_id, rgb)
+
+    def collect(self) -> None:
+        for r in self.extractor.poll():
+            self._take(r)
+
+    def drain(self) -> None:
+        """Waits for every submitted keyframe and hands over its grid (fitting the PCA on
+        what there is, if it was still waiting for more keyframes)."""
+        self.extractor.close()
+        self.collect()
+        if self._waiting and self.pca is None:
+            self._fit()
+        self._flush()
+
+    def _take(self, r) -> None:
+        self.timings["extraction"].append(r.extract_ms)
+        self._waiting.append((r.key, r.features))
+        if self.pca is None and len(self._waiting) >= self.config.pca_keyframes:
+            self._fit()
+        self._flush()
+
+    def _fit(self) -> None:
+        pca = PCA(self.config.feature_dim)
+        for _, raw in self._waiting:
+            pca.partial_fit(raw.reshape(-1, raw.shape[-1]))
+        self.pca = pca
+
+    def _flush(self) -> None:
+        """Compresses the waiting grids and hands them over, once there is a PCA."""
+        if self.pca is None:
+            return
+        for key, raw in self._waiting:
+            t0 = time.perf_counter()
+            grid = np.ascontiguousarray(self.pca.transform(raw), dtype=np.float32)
+            self.timings["compression"].append(1e3 * (time.perf_counter() - t0))
+            self.sink(int(key), grid)
+        self._waiting.clear()

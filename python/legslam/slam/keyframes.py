@@ -1,0 +1,42 @@
+"""When a frame becomes a keyframe: the camera moved or turned far enough since the last one,
+the map covers too little of what the frame measured, or too many frames passed."""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from .trajectory import KeyframeView
+
+__all__ = ["KeyframePolicy", "rotation_deg"]
+
+
+def rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle (degrees) between the rotations of two poses."""
+    r = a[:3, :3].T @ b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
+class KeyframePolicy:
+    """Thresholds from the config: `keyframe_translation` (m), `keyframe_rotation` (degrees),
+    `keyframe_overlap` (share of the frame's measured pixels the map covers) and
+    `keyframe_max_gap` (frames)."""
+
+    def __init__(self, config):
+        self.config = config
+
+    def wants(self, frame: int, pose: np.ndarray, coverage: float, last: Optional[KeyframeView],
+              map_empty: bool, coverage_counts: bool) -> bool:
+        """Whether frame number `frame`, tracked at `pose` with the map covering `coverage`,
+        becomes a keyframe after `last`. `coverage_counts`: whether the map is trained enough
+        for low coverage to mean a gap (fresh Gaussians are faint until trained: behind a
+        mapping thread, counting it would flood the mapper with keyframes)."""
+        c = self.config
+        if last is None or map_empty:
+            return True
+        moved = np.linalg.norm(pose[:3, 3] - last.pose[:3, 3])
+        return bool(moved > c.keyframe_translation
+                    or rotation_deg(last.pose, pose) > c.keyframe_rotation
+                    or (coverage_counts and coverage < c.keyframe_overlap)
+                    or frame - last.frame >= c.keyframe_max_gap)

@@ -1,0 +1,86 @@
+"""Which reference a frame is tracked against, and what counts as tracked.
+
+The map rendered at the predicted pose comes first; where it covers too little of the view, or
+the alignment against it fails, the last tracked frame, then the last keyframe. A frame is lost
+only when all of them fail.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator, Optional
+
+import numpy as np
+
+from ..tracking import Reference, Tracker
+from .trajectory import View
+
+__all__ = ["Tracked", "TrackingPolicy"]
+
+
+@dataclass(frozen=True)
+class Tracked:
+    """A frame's tracking outcome: its pose, "ok" or "lost" (the pose is then the prediction),
+    the share of its measured pixels the map covers, and why it was lost."""
+
+    pose: np.ndarray
+    state: str
+    coverage: float
+    reason: Optional[str] = None
+
+
+class TrackingPolicy:
+    """Tracks frames (at the tracking size, with intrinsics `K`) against the map, falling back
+    to recent views. `reference_alpha`: a rendered pixel is trusted where its alpha exceeds
+    this; below `min_coverage` trusted pixels the render is no reference."""
+
+    def __init__(self, tracker: Tracker, K: np.ndarray, reference_alpha: float, min_coverage: float):
+        self.tracker = tracker
+        self.K = K
+        self.reference_alpha, self.min_coverage = reference_alpha, min_coverage
+        # (render, trusted pixels, prepared reference or None) of the last render seen: a
+        # mapping thread's render serves many frames and is prepared once.
+        self._prepared: Optional[tuple] = None
+
+    def track(self, rgb: np.ndarray, depth: np.ndarray, predicted: np.ndarray,
+              map_view: tuple, fallbacks: tuple[View, ...]) -> Tracked:
+        """Tracks the frame from `predicted` against `map_view` ((pose, render), or (None,
+        None) when there is none yet), then each of `fallbacks` in turn."""
+        trusted, map_reference = self._map_reference(*map_view)
+        # What the map covers of what this frame measured: where it has no depth, a keyframe
+        # could not add anything (7-Scenes' registered depth leaves the image border empty).
+        measured = depth > 0
+        coverage = 1.0 if trusted is None else float(trusted[measured].mean() if measured.any()
+                                                     else trusted.mean())
+        reason = None
+        for ref in self._references(map_reference, fallbacks):
+            res = self.tracker.track(rgb, depth, self.K, init_pose=predicted, reference=ref)
+            if not res.lost:
+                return Tracked(res.pose, "ok", coverage)
+            reason = reason or res.reason
+        return Tracked(predicted, "lost", coverage, reason)
+
+    def _references(self, map_reference: Optional[Reference],
+                    fallbacks: tuple[View, ...]) -> Iterator[Reference]:
+        """The references in order, each prepared only when the one before has failed."""
+        if map_reference is not None:
+            yield map_reference
+        for view in fallbacks:
+            yield self.tracker.prepare_reference(view.rgb, view.depth, self.K, view.pose)
+
+    def _map_reference(self, pose, render) -> tuple:
+        """(the pixels where the render is trusted, the render prepared as a reference or None
+        when it covers too little)."""
+        if render is None:
+            return None, None  # unknown until the mapping thread's first render
+        if self._prepared is not None and self._prepared[0] is render:
+            return self._prepared[1:]
+        alpha = render.alpha
+        trusted = alpha > self.reference_alpha
+        reference = None
+        if trusted.mean() >= self.min_coverage:
+            depth = np.where(trusted, render.depth / np.maximum(alpha, 1e-6), 0).astype(np.float32)
+            rgb = np.clip(render.color / np.maximum(alpha, 1e-6)[..., None], 0, 1)
+            reference = self.tracker.prepare_reference(rgb, depth, self.K, pose)
+        self._prepared = (render, trusted, reference)
+        return trusted, reference
