@@ -188,13 +188,13 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     quick = tmp_path / "quick.toml"
     quick.write_text("final_iters = 5\nmap_iters_keyframe = 3\n")
     assert main(["demo", "--frames", "6", "--no-features", "--quiet", "--config", str(quick),
-                 "--out", str(tmp_path)]) == 0
+                 "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert "ATE RMSE" in out and "PSNR" in out
     assert "(map rendered at frames 0, 5, 10, ...)" in out
-    _, poses = read_tum(tmp_path / "trajectory.txt")
+    _, poses = read_tum(tmp_path / "out" / "trajectory.txt")
     assert len(poses) == 6
-    assert (tmp_path / "map.ply").is_file() and (tmp_path / "metrics.json").is_file()
+    assert (tmp_path / "out" / "map.ply").is_file() and (tmp_path / "out" / "metrics.json").is_file()
 
 
 def test_a_garbage_frame_is_lost_and_tracking_recovers(scene):
@@ -565,7 +565,7 @@ def test_frames_without_depth_are_counted_and_an_empty_map_is_said(scene, tmp_pa
         cv2.imwrite(str(d), blank)
     assert main([*args, "--out", str(tmp_path / "none")]) == 0
     printed = capsys.readouterr()
-    assert "warning: the map is empty: 8 of 8 frames had no valid depth" in printed.err
+    assert "warning: the map is empty: of 8 frames, 8 had no depth and 0 depth outside" in printed.err
     assert "depth L1 n/a" in printed.out
     assert main(["eval", str(tmp_path / "none")]) == 0
     assert "| every_5[depth_l1_cm] | n/a |" in capsys.readouterr().out

@@ -121,6 +121,11 @@ class GaussianMap:
         missing = [k for k in ("x", "y", "z", "f_dc_0", "opacity", "scale_0", "rot_0") if k not in names]
         if missing:
             raise ValueError(f"{path}: not a Gaussian-splat PLY (missing {', '.join(missing)})")
+        for name in names:
+            bad = ~np.isfinite(data[name])
+            if bad.any():
+                raise ValueError(f"{path}: property {name} of Gaussian {int(np.argmax(bad))} is "
+                                 f"{data[name][bad][0]} ({int(bad.sum())} non-finite values in all)")
 
         def stack(prefix):
             cols = sorted((c for c in names if c.startswith(prefix)), key=lambda c: int(c[len(prefix):]))
@@ -129,10 +134,17 @@ class GaussianMap:
         rest = stack("f_rest_")
         c = 1 + rest.shape[1] // 3
         sh = np.concatenate([stack("f_dc_")[:, None, :], rest.reshape(n, 3, c - 1).transpose(0, 2, 1)], axis=1)
+        # 3DGS tools store rotations unnormalised; the rotation is the normalised quaternion.
+        # Unit ones (legslam's own) are kept to the bit, so that a map reads back as it was.
+        quats = stack("rot_")
+        norm = np.linalg.norm(quats, axis=1, keepdims=True)
+        if quats.shape[1] != 4 or not np.all(norm > 0):
+            raise ValueError(f"{path}: rot_0..rot_3 must be a quaternion of non-zero length per Gaussian")
+        norm[np.abs(norm - 1) < 1e-5] = 1
         return cls(
             means=np.stack([data["x"], data["y"], data["z"]], axis=1),
             log_scales=stack("scale_"),
-            quats=stack("rot_"),
+            quats=quats / norm,
             opacity_logits=np.array(data["opacity"]),
             sh=np.ascontiguousarray(sh),
             features=stack("f_lang_"),

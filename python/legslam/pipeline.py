@@ -50,7 +50,6 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
     t0 = time.perf_counter()
     stamps, viewer_ms = [], []
     unreadable: set[int] = set()
-    no_depth = 0  # frames without any valid depth pixel
     try:
         for i, f in each_readable(seq):
             if f is None:  # lost: the motion model's pose
@@ -59,11 +58,6 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
                 slam.skip()
                 continue
             stamps.append(f.timestamp)
-            if not np.any(f.depth > 0):
-                if not no_depth:
-                    log.warning("frame %d has no valid depth, so it cannot grow the map (frames "
-                                "like it are counted in metrics.json)", i)
-                no_depth += 1
             r = slam.step(f.rgb, f.depth)
             if viewer is not None:
                 t1 = time.perf_counter()
@@ -91,12 +85,14 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
     metrics = {"keyframes": len(slam.keyframe_frames),
                "keyframe_frames": list(slam.keyframe_frames),
                "lost_frames": int(sum(s == "lost" for s in slam.states)),
-               "frames_without_depth": no_depth,
+               "frames_without_depth": slam.frames_without_depth,
+               "frames_depth_out_of_range": slam.frames_depth_out_of_range,
                "gaussians": slam.mapper.num_gaussians, "fps": timings["fps"]}
     size = (slam.width, slam.height)
     metrics.update(evaluate_run(
         seq, slam.poses, lambda pose, features: slam.mapper.render(pose, slam.K, *size, features),
         every=evaluate_every, keyframes=slam.keyframe_frames, skip=unreadable,
+        depth_range=slam.depth_range,
         exposures=slam.frame_exposures(), renders_dir=renders))
     write_json(out / METRICS, metrics)
     return {"metrics": metrics, "timings": timings, "out": str(out), "slam": slam}

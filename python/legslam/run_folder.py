@@ -26,10 +26,14 @@ from .eval import TrajectoryError, read_tum, write_tum
 from .map import GaussianMap
 
 __all__ = ["RunFolderError", "RunFolder", "write_json", "write_camera", "write_trajectory",
+           "replace_atomically", "RUN_FILES",
            "TRAJECTORY", "MAP", "PCA_FILE", "CAMERA", "CONFIG", "METRICS", "TIMINGS"]
 
 TRAJECTORY, MAP, PCA_FILE = "trajectory.txt", "map.ply", "pca.npz"
 CAMERA, CONFIG, METRICS, TIMINGS = "camera.json", "config.json", "metrics.json", "timings.json"
+#: Everything a run and the commands on its folder write there: what `--overwrite` replaces.
+RUN_FILES = (TRAJECTORY, MAP, PCA_FILE, CAMERA, CONFIG, METRICS, TIMINGS, "summary.json",
+             "eval.json", "renders", "queries", "views")
 
 
 class RunFolderError(ValueError):
@@ -50,9 +54,20 @@ def replace_atomically(path: Path, write) -> Path:
 
 
 def write_json(path, data) -> Path:
-    """`data` as indented JSON, atomically."""
-    text = json.dumps(data, indent=2)
+    """`data` as indented JSON, atomically. Non-finite numbers, which JSON cannot hold, are
+    written as null (the figures that can be infinite carry a note saying why)."""
+    text = json.dumps(_finite(data), indent=2, allow_nan=False)
     return replace_atomically(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def _finite(v):
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    if isinstance(v, float) and not np.isfinite(v):
+        return None
+    return v
 
 
 def write_camera(out: Path, K: np.ndarray, width: int, height: int, sequence: str,

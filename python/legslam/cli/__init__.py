@@ -9,7 +9,7 @@ import logging
 import sys
 
 from . import demo, eval, export_models, models, odometry, query, render, run
-from .common import UserError
+from .common import Stopped, UserError, stopping_on_signals
 
 # subcommand -> (module, one-line help)
 COMMANDS = {
@@ -72,10 +72,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     _show_log()
     try:
-        return int(args._run(args) or 0)
+        with stopping_on_signals():
+            return int(args._run(args) or 0)
     except UserError as e:
         print(f"legslam {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except Stopped as e:
+        print(f"stopped by {e}", file=sys.stderr)
+        return 128 + e.signum
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -12,7 +12,8 @@ import numpy as np
 
 from ..datasets import DatasetError, open as open_dataset
 from ..eval import NoPrototypes, by_example, by_text, evaluate_run
-from ..run_folder import RunFolder, write_json
+from ..run_folder import CONFIG, RunFolder, write_json
+from ..slam import SLAMConfig
 from .common import UserError, at_least, open_run
 from .text_model import add_text_model_options, run_text_queries
 
@@ -100,7 +101,8 @@ def run(args) -> int:
         raise UserError(f"none of the run's {len(poses)} frames of {seq.path} can be read")
     sem = _semantic_score(args, seq, r, views, lambda i: seq[i].labels,
                           lambda i: render(poses[i], True).features)
-    report = evaluate_run(seq, poses, render, every=args.every, skip=skip, semantic=sem)
+    report = evaluate_run(seq, poses, render, every=args.every, skip=skip,
+                          depth_range=_depth_range(r), semantic=sem)
     report["gaussians"] = len(r.map)
     if sem is not None and sem.views == 0:
         print("note: no semantic metrics: every evaluated view is a support view (use a smaller --every)")
@@ -108,6 +110,15 @@ def run(args) -> int:
     write_json(run_dir / "eval.json", report)
     print(f"saved {run_dir / 'eval.json'}")
     return 0
+
+
+def _depth_range(run: RunFolder) -> tuple:
+    """The depth range (m) the run kept, from its config.json (the defaults without one)."""
+    try:
+        config = SLAMConfig.from_file(run.path / CONFIG) if (run.path / CONFIG).is_file() else SLAMConfig()
+    except (OSError, ValueError) as e:
+        raise UserError(f"{run.path / CONFIG}: {e}") from e
+    return config.mapper.depth_min, config.mapper.depth_max
 
 
 def _semantic_score(args, seq, run: RunFolder, views: list, labels_of, features_of):

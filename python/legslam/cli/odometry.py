@@ -14,11 +14,13 @@ import argparse
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from .. import datasets
 from ..eval import ate_rmse, write_tum
+from ..run_folder import replace_atomically
 from ..tracking import DEFAULT_CONFIG, Odometry, fitting_levels
 from .common import UserError, at_least, output_file
 
@@ -42,16 +44,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
+def _write(path: Path, stamps, poses) -> None:
+    """The trajectory, whole or not at all (none when no frame was tracked)."""
+    if poses:
+        replace_atomically(path, lambda tmp: write_tum(tmp, stamps, poses))
+
+
 def run(args: argparse.Namespace) -> int:
     at_least("--stride", args.stride)
     at_least("--downscale", args.downscale)
     at_least("--max-frames", args.max_frames)
-    output_file(args.out)
+    out = output_file(args.out)
     try:
         seq = datasets.open(args.path, format=args.format, stride=args.stride,
                             max_frames=args.max_frames, downscale=args.downscale)
     except (FileNotFoundError, NotADirectoryError, ValueError) as e:
         raise UserError(f"cannot read {args.path}: {e}")
+    if out.exists() and Path(seq.path).resolve() in out.resolve().parents:
+        raise UserError(f"--out {out} is a file of the input sequence {seq.path}: give another name")
     n = len(seq)
     if n == 0:
         raise UserError(f"no frames in {args.path}")
@@ -108,10 +118,14 @@ def run(args: argparse.Namespace) -> int:
                 print(("\r" + msg) if tty else msg, end="" if tty and i + 1 < n else "\n",
                       file=sys.stderr, flush=True)
     except datasets.DatasetError as e:  # too many unreadable in a row: keep what is done
-        write_tum(args.out, stamps, poses)
-        raise UserError(f"{e}; the trajectory of the frames before is in {args.out}")
+        _write(out, stamps, poses)
+        raise UserError(f"{e}; the trajectory of the frames before is in {out}")
+    except KeyboardInterrupt:  # Ctrl-C, SIGTERM: keep what is done
+        _write(out, stamps, poses)
+        print(f"stopped after {len(poses)} frames: their trajectory is in {out}", file=sys.stderr)
+        raise
 
-    write_tum(args.out, stamps, poses)
+    _write(out, stamps, poses)
     total = time.perf_counter() - t_start
     med = statistics.median(times) if times else float("nan")
     print(f"{n} frames in {total:.1f} s, median {med:.1f} ms/frame (tracking only), "

@@ -12,7 +12,7 @@ import numpy as np
 from ..map import GaussianMap
 from ..render import feature_basis, feature_rgb
 from ..run_folder import CAMERA, MAP, TRAJECTORY, read_camera, read_trajectory
-from .common import UserError, at_least, output_dir
+from .common import UserError, at_least, available_memory, output_dir
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -41,6 +41,16 @@ def _camera(args, run_dir: Path) -> tuple:
     return read_camera(run_dir / CAMERA)[:3]
 
 
+def _check_memory(width: int, height: int, channels: int) -> None:
+    """Refuses a view that would not fit in memory: the engine's images (colour, depth, alpha,
+    features, per-pixel state) and the PNGs made of them."""
+    need = width * height * (4 * (7 + channels) + 16)
+    free = available_memory()
+    if need > free:
+        raise UserError(f"a {width}x{height} view needs about {need / 2**30:.1f} GiB, "
+                        f"{free / 2**30:.1f} GiB are available: give a smaller --size")
+
+
 def run(args) -> int:
     src = Path(args.run)
     map_path = src / MAP if src.is_dir() else src
@@ -54,8 +64,9 @@ def run(args) -> int:
         m = GaussianMap.load(map_path)
     except (OSError, ValueError) as e:  # RunFolderError is a ValueError
         raise UserError(str(e)) from e
-    out = output_dir(Path(args.out) if args.out else run_dir / "views")
     features = m.num_features > 0 and not args.no_features
+    _check_memory(width, height, m.num_features if features else 0)
+    out = output_dir(Path(args.out) if args.out else run_dir / "views")
     basis = None
     picked = range(0, len(poses), args.every)
     for n, i in enumerate(picked):

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 
 from ..datasets import DatasetError, open as open_dataset
 from ..eval import every_key
 from ..pipeline import run as run_pipeline
-from ..run_folder import write_json
+from ..run_folder import RUN_FILES, write_json
 from ..slam import SLAMConfig
 from ..viewer import RerunViewer, ViewerError
 from .common import UserError, at_least, output_dir
@@ -27,7 +28,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
     """The options of a SLAM run, shared with `legslam demo`."""
-    p.add_argument("--out", default=None, help="output folder (default: legslam-out/<name>)")
+    p.add_argument("--out", default=None,
+                   help="output folder (default: legslam-out/<name>); it must be empty, or hold a "
+                        "previous run and --overwrite be given; never the input's folder")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the files of a previous run in --out (only those: trajectory, "
+                        "map, metrics, renders, ...); other files there are left alone")
     p.add_argument("--config", default=None, help="a .toml/.json/.yaml file overriding defaults")
     p.add_argument("--no-features", action="store_true",
                    help="no language features (no encoder needed)")
@@ -72,27 +78,50 @@ def run_config(args) -> SLAMConfig:
         raise UserError(str(e)) from e
 
 
+def run_output_dir(path, source, overwrite: bool) -> Path:
+    """The output folder of a run, checked before any work: never the input's folder or one
+    that holds it; empty, or holding a run that --overwrite replaces (its files only)."""
+    p = Path(path)
+    out, src = p.resolve(), Path(source).resolve()
+    if out == src or out in src.parents:
+        raise UserError(f"the output folder {p} is (or holds) the input {source}: the run would "
+                        "write over its files; give another --out")
+    if p.is_dir() and any(p.iterdir()):
+        if not overwrite:
+            raise UserError(f"the output folder {p} is not empty (a previous run?): give --overwrite "
+                            "to replace that run's files, or another --out")
+        for name in RUN_FILES:
+            old = p / name
+            if old.is_dir() and not old.is_symlink():
+                shutil.rmtree(old)
+            else:
+                old.unlink(missing_ok=True)
+    return output_dir(p)
+
+
 def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
     """Runs SLAM over `seq` into --out (default legslam-out/NAME) and prints the figures."""
-    out = output_dir(args.out or Path("legslam-out") / name)
+    out = run_output_dir(args.out or Path("legslam-out") / name, seq.path, args.overwrite)
     viewer = _viewer(args)
     try:
         result = run_pipeline(seq, out, config, progress=None if args.quiet else Progress(len(seq)),
                               viewer=viewer)
-    # The encoder model not in the cache, the first frame or too many in a row unreadable.
-    except (FileNotFoundError, DatasetError) as e:
-        raise UserError(str(e)) from e
-    except ViewerError as e:
+    # The encoder model not in the cache, the first frame or too many in a row unreadable, a
+    # config the camera or encoder cannot take.
+    except (FileNotFoundError, ValueError, ViewerError) as e:
         raise UserError(str(e)) from e
     m, t = result["metrics"], result["timings"]
     unreadable = f" ({len(m['unreadable_frames'])} unreadable)" if m["unreadable_frames"] else ""
     print(f"frames {m['frames']}  keyframes {m['keyframes']}  lost {m['lost_frames']}{unreadable}  "
           f"gaussians {m['gaussians']}  {t['fps']:.2f} fps ({t['fps_live']:.2f} while frames came in)")
     if m["gaussians"] == 0:
-        print(f"warning: the map is empty: {m['frames_without_depth']} of {m['frames']} frames "
-              "had no valid depth (check the depth files and their scale)", file=sys.stderr)
+        print(f"warning: the map is empty: of {m['frames']} frames, {m['frames_without_depth']} had "
+              f"no depth and {m['frames_depth_out_of_range']} depth outside depth_min..depth_max "
+              "(check the depth files and their scale)", file=sys.stderr)
     if "ate_rmse_cm" in m:
         print(f"ATE RMSE {m['ate_rmse_cm']:.2f} cm")
+    if "ate_note" in m:
+        print(f"note: ATE {m['ate_note']}" if "ate_rmse_cm" in m else f"note: {m['ate_note']}")
     n = m["every"]
     e = m[every_key(n)]
 

@@ -3,6 +3,7 @@ corrupt file; every reader here turns that into a DatasetError that names the fi
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -11,13 +12,38 @@ import numpy as np
 from .base import DatasetError, DatasetNotFoundError, as_K, check_pose
 
 
+def read_bytes(path: Path, what: str = "file") -> bytes:
+    """A file's bytes; missing, unreadable (permissions, a folder) or empty is a DatasetError
+    naming it."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetNotFoundError(f"missing {what} {path}")
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise DatasetError(f"cannot read {what} {path}: {e.strerror or e}") from None
+    if not data:
+        raise DatasetError(f"{what} {path} is empty (0 bytes)")
+    return data
+
+
+def read_text(path: Path, what: str = "file") -> str:
+    """A text file's contents, with read_bytes' errors, and one that is not text named."""
+    try:
+        return read_bytes(path, what).decode("utf-8")
+    except UnicodeDecodeError:
+        raise DatasetError(f"{what} {path} is not a text file") from None
+
+
 def _imread(path: Path, flags: int) -> np.ndarray:
     import cv2
 
-    if not path.is_file():
-        raise DatasetNotFoundError(f"missing image {path}")
     # imdecode (not imread) so that non-ASCII paths work on every platform.
-    img = cv2.imdecode(np.fromfile(str(path), dtype=np.uint8), flags)
+    data = np.frombuffer(read_bytes(path, "image"), dtype=np.uint8)
+    try:
+        img = cv2.imdecode(data, flags)
+    except cv2.error:
+        img = None
     if img is None:
         raise DatasetError(f"cannot decode image {path} (corrupt or not an image)")
     return img
@@ -37,11 +63,9 @@ def read_depth(path: Path) -> np.ndarray:
 
     path = Path(path)
     if path.suffix == ".npy":
-        if not path.is_file():
-            raise DatasetNotFoundError(f"missing depth {path}")
         try:
-            img = np.load(path, allow_pickle=False)
-        except ValueError as e:
+            img = np.load(io.BytesIO(read_bytes(path, "depth")), allow_pickle=False)
+        except (ValueError, EOFError) as e:
             raise DatasetError(f"cannot read depth {path}: {e}") from None
     else:
         img = _imread(path, cv2.IMREAD_ANYDEPTH)
@@ -62,14 +86,13 @@ def read_labels(path: Path) -> np.ndarray:
     return img
 
 
-def read_numbers(path: Path, columns=None) -> np.ndarray:
+def read_numbers(path: Path, columns=None, line_numbers: bool = False):
     """A text table of numbers (# comments and blank lines skipped, commas or spaces) as a 2D
-    float64 array; columns, when given, is the set of accepted row lengths."""
+    float64 array; columns, when given, is the set of accepted row lengths. With
+    `line_numbers`, also each row's line number in the file."""
     path = Path(path)
-    if not path.is_file():
-        raise DatasetNotFoundError(f"missing file {path}")
-    rows = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    rows, lines = [], []
+    for n, line in enumerate(read_text(path).splitlines(), 1):
         line = line.split("#", 1)[0].replace(",", " ").strip()
         if not line:
             continue
@@ -82,9 +105,10 @@ def read_numbers(path: Path, columns=None) -> np.ndarray:
             raise DatasetError(f"{path}:{n}: expected {' or '.join(map(str, widths))} numbers, "
                                f"found {len(row)}: {line!r}")
         rows.append(row)
+        lines.append(n)
     if not rows:
         raise DatasetError(f"{path} holds no numbers")
-    return np.array(rows)
+    return (np.array(rows), lines) if line_numbers else np.array(rows)
 
 
 def read_intrinsics(path: Path) -> tuple:
@@ -96,7 +120,7 @@ def read_intrinsics(path: Path) -> tuple:
     path = Path(path)
     if path.suffix == ".json":
         try:
-            d = json.loads(path.read_text())
+            d = json.loads(read_text(path, "camera file"))
             d = d.get("camera", d)
             K = as_K([d["fx"], d["fy"], d["cx"], d["cy"]])
         except (ValueError, KeyError, AttributeError, TypeError) as e:
@@ -113,6 +137,8 @@ def read_intrinsics(path: Path) -> tuple:
 def quat_to_pose(t, q) -> np.ndarray:
     """4x4 from translation and a Hamilton quaternion (qx, qy, qz, qw), TUM's order."""
     x, y, z, w = np.asarray(q, dtype=np.float64)
+    if not np.all(np.isfinite([*t, x, y, z, w])):
+        raise DatasetError(f"pose {[*t, *q]} has a non-finite value (NaN or inf)")
     n = np.sqrt(x * x + y * y + z * z + w * w)
     if not n > 1e-6:
         raise DatasetError(f"quaternion {list(q)} has zero length")
@@ -125,16 +151,23 @@ def quat_to_pose(t, q) -> np.ndarray:
     return T
 
 
-def poses_from_rows(rows: np.ndarray, where) -> tuple:
+def poses_from_rows(rows: np.ndarray, where, lines=None) -> tuple:
     """(timestamps or None, list of 4x4) from pose rows of 7 (tx ty tz qx qy qz qw),
-    8 (TUM: with a leading timestamp) or 16 (row-major 4x4) numbers."""
+    8 (TUM: with a leading timestamp) or 16 (row-major 4x4) numbers; `lines`: each row's line
+    in the file `where`, for errors."""
     if rows.shape[1] == 16:
         return None, [r.reshape(4, 4) for r in rows]
     stamps = rows[:, 0] if rows.shape[1] == 8 else None
     body = rows[:, 1:] if rows.shape[1] == 8 else rows
     if body.shape[1] != 7:
         raise DatasetError(f"{where}: pose rows must have 7, 8 or 16 numbers, not {rows.shape[1]}")
-    return stamps, [quat_to_pose(r[:3], r[3:]) for r in body]
+    poses = []
+    for k, r in enumerate(body):
+        try:
+            poses.append(quat_to_pose(r[:3], r[3:]))
+        except DatasetError as e:
+            raise DatasetError(f"{where}:{lines[k] if lines else k + 1}: {e}") from None
+    return stamps, poses
 
 
 def read_pose_matrix(path: Path):

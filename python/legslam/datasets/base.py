@@ -73,6 +73,20 @@ def as_K(intrinsics) -> np.ndarray:
     return make_K(fx, fy, cx, cy)
 
 
+def warn_unusual_camera(K: np.ndarray, width: int, height: int, where: str) -> None:
+    """Warns (the "legslam" logger) about intrinsics that are legal but unlikely to be meant: a
+    principal point outside the image, or a field of view narrower than 2 or wider than 160
+    degrees (focal lengths in another image's pixels, or in millimetres)."""
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+        log.warning("%s: the principal point (%.1f, %.1f) lies outside the %dx%d image: are the "
+                    "intrinsics for another image size?", where, cx, cy, width, height)
+    fov = np.degrees(2 * np.arctan2([width / 2, height / 2], [abs(fx), abs(fy)]))
+    if fov.min() < 2 or fov.max() > 160:
+        log.warning("%s: focal lengths fx %.4g, fy %.4g give a %.1f x %.1f degree field of view for "
+                    "%dx%d images: are they in pixels of these images?", where, fx, fy, *fov, width, height)
+
+
 def check_pose(pose: np.ndarray, where: str) -> Optional[np.ndarray]:
     """A validated 4x4 c2w pose. Non-finite entries mean "no pose" (ScanNet writes -inf when
     its tracking was lost), so they give None; a matrix that is not a rigid motion is an error."""
@@ -154,6 +168,7 @@ class Sequence:
         if self._flip_rows:
             K[1, 1], K[1, 2] = -K[1, 1], (h - 1) - K[1, 2]
         self.native_K = K
+        warn_unusual_camera(K, w, h, str(self.path))
         # Scaling about pixel centres, as cv2.resize samples: u' = (u + 0.5) / f - 0.5.
         self.K = make_K(K[0, 0] / f, K[1, 1] / f, (K[0, 2] + 0.5) / f - 0.5, (K[1, 2] + 0.5) / f - 0.5)
         self.width, self.height = w // f, h // f
@@ -205,8 +220,11 @@ class Sequence:
         if not isinstance(k, (int, np.integer)):
             raise TypeError(f"sequence indices must be integers, not {type(k).__name__}")
         i = self._indices[k]  # raises IndexError past the end, handles negative k
-        rgb, depth, labels = self._read(i)
         where = f"{self.path} frame {i}"
+        try:
+            rgb, depth, labels = self._read(i)
+        except OSError as e:  # the loaders name their files; this is the net under them
+            raise DatasetError(f"{where}: {e}") from None
         depth = self._to_metres(depth, where)
         w, h = self.native_size
         if rgb.shape != (h, w, 3) or depth.shape != (h, w):

@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import poses_from_rows, read_depth, read_intrinsics, read_labels, read_numbers, read_rgb
+from ._io import (poses_from_rows, read_depth, read_intrinsics, read_labels, read_numbers, read_rgb,
+                  read_text)
 from .base import IGNORE_LABEL, NOMINAL_FPS, DatasetError, DatasetNotFoundError, Sequence, check_pose, paths_sorted
 
 COLOUR_DIRS = ("color", "colour", "rgb", "image", "images")
@@ -79,15 +80,16 @@ class FolderSequence(Sequence):
                 raise DatasetNotFoundError(f"{ldir}: no label image for {', '.join(missing[:5])}")
             self._labels = [labels[s] for s in self._stems]
             if (p / "classes.txt").is_file():
-                self.class_names = [ln.strip() for ln in (p / "classes.txt").read_text().splitlines() if ln.strip()]
+                self.class_names = [ln.strip() for ln in read_text(p / "classes.txt").splitlines() if ln.strip()]
 
         self._poses, self._stamps = [None] * n, None
         pose_file = next((p / f for f in POSE_FILES if (p / f).is_file()), None)
         if pose_file is not None:
-            stamps, poses = poses_from_rows(read_numbers(pose_file, columns=(7, 8, 16)), pose_file)
+            rows, lines = read_numbers(pose_file, columns=(7, 8, 16), line_numbers=True)
+            stamps, poses = poses_from_rows(rows, pose_file, lines)
             if len(poses) != n:
                 raise DatasetError(f"{pose_file} has {len(poses)} poses for {n} frames (line i must be frame i)")
-            self._poses = [check_pose(T, f"{pose_file} line {k + 1}") for k, T in enumerate(poses)]
+            self._poses = [check_pose(T, f"{pose_file}:{line}") for line, T in zip(lines, poses)]
             self._stamps = stamps
 
         cam = next((p / f for f in CAMERA_FILES if (p / f).is_file()), None)
@@ -98,7 +100,8 @@ class FolderSequence(Sequence):
             raise DatasetNotFoundError(f"{p}: no camera file (looked for {', '.join(CAMERA_FILES)}); "
                                        "add one or pass intrinsics=(fx, fy, cx, cy)")
         h, w = read_rgb(self._rgb[0]).shape[:2]
-        self._setup(K if K is not None else self._K_override, scale or DEFAULT_DEPTH_SCALE, (w, h))
+        self._setup(K if K is not None else self._K_override,
+                    DEFAULT_DEPTH_SCALE if scale is None else scale, (w, h))
 
     def _count(self):
         return len(self._stems)

@@ -53,7 +53,7 @@ class ReplicaSequence(Sequence):
             K, scale, size = read_intrinsics(cam)
             if size is not None and size != (w, h):
                 raise DatasetError(f"{cam} describes {size[0]}x{size[1]} images but {self._rgb[0]} is {w}x{h}")
-            scale = scale or DEPTH_SCALE
+            scale = DEPTH_SCALE if scale is None else scale
         else:
             sx, sy = w / STANDARD_SIZE[0], h / STANDARD_SIZE[1]
             fx, fy, cx, cy = STANDARD_CAMERA

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import poses_from_rows, read_depth, read_numbers, read_rgb
+from ._io import poses_from_rows, read_depth, read_numbers, read_rgb, read_text
 from .base import DatasetError, DatasetNotFoundError, Sequence, check_pose, make_K
 
 DEPTH_SCALE = 5000.0
@@ -33,10 +33,8 @@ def is_tum(path: Path) -> bool:
 
 def read_file_list(path: Path) -> tuple:
     """(timestamps, file names) from a TUM `timestamp filename` list."""
-    if not path.is_file():
-        raise DatasetNotFoundError(f"missing {path}")
     stamps, names = [], []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(read_text(path).splitlines(), 1):
         parts = line.split("#", 1)[0].split()
         if not parts:
             continue
@@ -106,10 +104,10 @@ class TUMSequence(Sequence):
         self._poses = [None] * len(pairs)
         gt = p / "groundtruth.txt"
         if gt.is_file():
-            rows = read_numbers(gt, columns=(8,))
-            _, poses = poses_from_rows(rows, gt)
+            rows, lines = read_numbers(gt, columns=(8,), line_numbers=True)
+            _, poses = poses_from_rows(rows, gt, lines)
             for k, j in associate(self._stamps, rows[:, 0], max_time_diff):
-                self._poses[k] = check_pose(poses[j], f"{gt} line for t={rows[j, 0]}")
+                self._poses[k] = check_pose(poses[j], f"{gt}:{lines[j]}")
         # Given intrinsics are taken to describe the images as they are: no undistortion.
         (fx, fy, cx, cy), dist = camera_for(p) if self._K_override is None else (DEFAULT_CAMERA[0], ())
         K = make_K(fx, fy, cx, cy)

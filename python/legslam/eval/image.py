@@ -92,7 +92,15 @@ class ViewScores:
             self.values["depth_l1_cm"].append(l1)
 
     def means(self) -> dict:
-        return {k: float(np.mean(v)) if v else None for k, v in self.values.items()}
+        """Each figure's mean. A render equal to its frame has an infinite PSNR (an all-black
+        frame and an empty map, say), which no mean can hold: PSNR is then None, with a note."""
+        out = {k: float(np.mean(v)) if v else None for k, v in self.values.items()}
+        infinite = int(np.isinf(self.values["psnr"]).sum())
+        if infinite:
+            out["psnr"] = None
+            out["psnr_note"] = (f"undefined: {infinite} of {len(self.values['psnr'])} renders equal "
+                                "their frames exactly (infinite PSNR)")
+        return out
 
 
 def lpips(a, b, net: str = "alex") -> float:

@@ -29,14 +29,15 @@ def every_key(every: int) -> str:
 
 
 def evaluate_run(seq, poses, render: Callable, *, every: int = 5, keyframes=None, skip=(),
-                 exposures: Optional[np.ndarray] = None, renders_dir: Optional[Path] = None,
-                 n_renders: int = 4, semantic=None) -> dict:
+                 depth_range=(0.0, np.inf), exposures: Optional[np.ndarray] = None,
+                 renders_dir: Optional[Path] = None, n_renders: int = 4, semantic=None) -> dict:
     """The figures of a run over `seq`, whose frame k was placed at `poses[k]`.
 
     render(pose, features) -> an object with `color`, `depth` (and `features`) images: the map.
     keyframes: frame numbers of the keyframes (their figures are "at_keyframes"), if known.
     skip: frames the run could not read, left out of every figure (with any that cannot be read
-    now: "unreadable_frames"). exposures: per frame the
+    now: "unreadable_frames"). depth_range: the depth (m) the run used; depth outside it is
+    not compared (as the run kept it out of the map). exposures: per frame the
     gain and bias (2 x 3) of its keyframe's exposure (adds "psnr_exposed"). renders_dir: where
     to write a few renders beside their input frames. semantic: a scorer (eval.semantic's
     SemanticScore) given the rendered features of every N-th frame.
@@ -63,7 +64,8 @@ def evaluate_run(seq, poses, render: Callable, *, every: int = 5, keyframes=None
             score_semantic = semantic is not None and name != "at_keyframes"
             r = render(poses[k], k in show or score_semantic)
             color = np.clip(r.color, 0, 1)
-            scores.add(color, r.depth, f.rgb, f.depth)
+            low, high = depth_range
+            scores.add(color, r.depth, f.rgb, np.where((f.depth >= low) & (f.depth <= high), f.depth, 0))
             count += 1
             if exposures is not None:
                 gain, bias = exposures[k]
@@ -86,14 +88,24 @@ def evaluate_run(seq, poses, render: Callable, *, every: int = 5, keyframes=None
 
 
 def _trajectory_figures(seq, poses, frames: list) -> dict:
-    """ATE and RPE (cm, degrees) over `frames` when every one of them has a ground-truth pose."""
-    gt = [seq.pose(k) for k in frames]
-    if len(frames) < 3 or any(p is None for p in gt):
-        return {}
-    truth, estimate = np.stack(gt), np.stack([poses[k] for k in frames])
+    """ATE and RPE (cm, degrees) over those of `frames` that have a ground-truth pose, with a
+    note when some have none (RPE then pairs consecutive frames with one)."""
+    with_gt = [(k, p) for k in frames if (p := seq.pose(k)) is not None]
+    missing = len(frames) - len(with_gt)
+    if len(with_gt) < 3:
+        why = "the sequence has no ground-truth poses" if not with_gt else "fewer than 3 frames have a ground-truth pose"
+        return {"ate_note": f"no ATE: {why}"}
+    truth = np.stack([p for _, p in with_gt])
+    estimate = np.stack([poses[k] for k, _ in with_gt])
     a, r = ate(truth, estimate), rpe(truth, estimate)
-    return {"ate_rmse_cm": 100 * a["rmse"], "ate_mean_cm": 100 * a["mean"],
-            "rpe_trans_rmse_cm": 100 * r["trans"]["rmse"], "rpe_rot_rmse_deg": r["rot"]["rmse"]}
+    out = {"ate_rmse_cm": 100 * a["rmse"], "ate_mean_cm": 100 * a["mean"],
+           "rpe_trans_rmse_cm": 100 * r["trans"]["rmse"], "rpe_rot_rmse_deg": r["rot"]["rmse"]}
+    if missing:
+        first = [k for k in frames if seq.pose(k) is None][:5]
+        out["ate_note"] = (f"over the {len(with_gt)} of {len(frames)} frames with a ground-truth pose "
+                           f"(none for frame{'s' if missing > 1 else ''} "
+                           f"{', '.join(map(str, first))}{' ...' if missing > 5 else ''})")
+    return out
 
 
 def _save_png(path: Path, rgb: np.ndarray) -> None:

@@ -72,6 +72,9 @@ class Encoder:
             self.fixed_size = False
         self.batch_fixed = isinstance(shape[0], int)
         self.grid = (self.input_size[0] // self.patch_size, self.input_size[1] // self.patch_size)
+        out = {o.name: o for o in self.session.get_outputs()}[OUTPUT_NAME].shape
+        #: The feature dimension D, or None where the model leaves it symbolic.
+        self.dim = out[-1] if out and isinstance(out[-1], int) else None
 
     def preprocess(self, rgb: np.ndarray) -> np.ndarray:
         """uint8 RGB HxWx3 -> float32 [3, H', W'] resized and ImageNet-normalised."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import zipfile
 import zlib
+from pathlib import Path
 
 import numpy as np
 
@@ -108,10 +109,13 @@ class PCA:
         return (flat @ components + mean).reshape(*y.shape[:-1], self.dim)
 
     def save(self, path) -> None:
-        """Writes an .npz that `PCA.load` reads back, fit statistics included (fitting can go on)."""
+        """Writes an .npz that `PCA.load` reads back, fit statistics included (fitting can go on);
+        whole or not at all (a temporary file renamed over `path`)."""
         mean, components, explained_variance = self._solved()
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp.npz")
         np.savez(
-            path,
+            tmp,
             n_components=self.n_components,
             n_samples=self.n_samples,
             sum=self._sum,
@@ -120,6 +124,7 @@ class PCA:
             components=components,
             explained_variance=explained_variance,
         )
+        tmp.replace(path)
 
     @classmethod
     def load(cls, path) -> "PCA":

@@ -283,6 +283,9 @@ _RANGES = {
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0),
-    "encoder_size": (28, _INF), "encoder_threads": (0, _INF), "feature_dim": (1, _INF),
+    "encoder_size": (28, _INF), "encoder_threads": (0, _INF),
+    # Checked against the encoder's own dimension once it is loaded; the bound keeps an absurd
+    # value from reaching the engine's allocations where the encoder does not say.
+    "feature_dim": (1, 4096),
     "pca_keyframes": (1, _INF),
 }

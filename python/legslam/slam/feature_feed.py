@@ -24,6 +24,10 @@ class FeatureFeed:
         self.config, self.sink, self.timings = c, sink, timings
         if encoder is None:
             encoder = Encoder(c.encoder, input_size=c.encoder_size, threads=c.encoder_threads)
+        dim = getattr(encoder, "dim", None)
+        if dim is not None and c.feature_dim > dim:
+            raise ValueError(f"feature_dim is {c.feature_dim}, more than the {dim} dimensions the "
+                             f"encoder ({getattr(encoder, 'path', c.encoder)}) gives: at most {dim}")
         self.extractor = AsyncExtractor(encoder)
         self.pca = PCA.load(c.pca_path) if c.pca_path else None
         if self.pca is not None and self.pca.n_components != c.feature_dim:

@@ -11,6 +11,7 @@ hand keyframes to the map (`InlineMapping` or `ThreadedMapping`) and their langu
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from contextlib import contextmanager
@@ -21,6 +22,7 @@ import cv2
 import numpy as np
 
 from .. import _core
+from ..datasets.base import warn_unusual_camera
 from ..map import GaussianMap
 from ..tracking import Tracker
 from .config import SLAMConfig
@@ -31,6 +33,8 @@ from .track_policy import Tracked, TrackingPolicy
 from .trajectory import KeyframeView, Trajectory, View
 
 __all__ = ["SLAM", "StepResult"]
+
+log = logging.getLogger("legslam")
 
 # The final mapping iterations run in batches of this many: progress, and Ctrl-C, in between.
 FINAL_BATCH = 25
@@ -56,27 +60,35 @@ class SLAM:
         if self.K.shape != (3, 3):
             raise ValueError(f"K must be 3x3, got shape {self.K.shape}")
         self.width, self.height = int(width), int(height)
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"width and height must be positive, got {width}x{height}")
+        warn_unusual_camera(self.K, self.width, self.height, "SLAM")
+        self.timings: dict[str, list[float]] = {
+            "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
+        self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
+        # The encoder first: it checks feature_dim before the map is sized by it.
+        self._features = (FeatureFeed(c, lambda kf, grid: self._mapping.set_features(kf, grid),
+                                      self.feature_timings, encoder) if c.features else None)
+        self.depth_range = (c.mapper.depth_min, c.mapper.depth_max)
+        #: Frames without any depth measurement, and frames whose depth lay mostly outside
+        #: `depth_range` (dropped: see `_prepare`).
+        self.frames_without_depth = self.frames_depth_out_of_range = 0
         s = min(1.0, c.track_width / self.width)
-        K_track, *self.track_size = _core.scaled_intrinsics(self.K, self.width, self.height, s)
-        self.K_track = K_track
+        self.K_track, *size = _core.scaled_intrinsics(self.K, self.width, self.height, s)
+        self.track_size = tuple(size)
         threads = (c.mapping_threads or os.cpu_count() or 2) if c.mapping_thread else None
         self.mapper = _core.MapperCore(c.mapper_options(self.width), threads=threads)
         tracker = Tracker(threads=1 if c.mapping_thread else None,
                           **c.tracker_options(*self.track_size))
-        self.tracking = TrackingPolicy(tracker, K_track, c.reference_alpha, c.min_reference_coverage)
+        self.tracking = TrackingPolicy(tracker, self.K_track, c.reference_alpha, c.min_reference_coverage)
         self.keyframes = KeyframePolicy(c)
         self.trajectory = Trajectory()
         self.keyframe_frames: list[int] = []
         self._last_keyframe: Optional[KeyframeView] = None
         self._last_tracked: Optional[View] = None
-        self._mapping = (ThreadedMapping(self.mapper, K_track, self.track_size, c.mapping_batch)
+        self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch)
                          if c.mapping_thread else self._inline_mapping())
         self._final_stats: list = []
-        self.timings: dict[str, list[float]] = {
-            "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
-        self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
-        self._features = (FeatureFeed(c, lambda kf, grid: self._mapping.set_features(kf, grid),
-                                      self.feature_timings, encoder) if c.features else None)
 
     def _inline_mapping(self) -> InlineMapping:
         c = self.config
@@ -112,20 +124,47 @@ class SLAM:
         self.timings[stage].append(1e3 * (time.perf_counter() - t0))
 
     def _prepare(self, i: int, rgb, depth) -> tuple:
-        """The frame checked, its invalid depth zeroed, and a View of it at the tracking size
-        (posed once tracked)."""
-        rgb = np.asarray(rgb)
-        depth = np.asarray(depth, dtype=np.float32)
+        """The frame checked, its depth kept only within `depth_range` (everything downstream
+        sees the same valid depth), and a View of it at the tracking size (posed once tracked)."""
+        rgb, depth = np.asarray(rgb), np.asarray(depth)
         if rgb.shape != (self.height, self.width, 3) or rgb.dtype != np.uint8:
             raise ValueError(f"frame {i}: rgb must be {self.height}x{self.width}x3 uint8, got "
                              f"{rgb.dtype} {rgb.shape}")
         if depth.shape != (self.height, self.width):
             raise ValueError(f"frame {i}: depth must be {self.height}x{self.width}, got {depth.shape}")
-        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
-        size = tuple(self.track_size)
+        if depth.dtype.kind != "f":
+            raise ValueError(f"frame {i}: depth must be float metres, got {depth.dtype} (sensor "
+                             "units: divide by the depth scale, e.g. 1000 for millimetres)")
+        depth = self._depth_in_range(i, depth.astype(np.float32))
+        size = self.track_size
         small = View(None, cv2.resize(rgb, size, interpolation=cv2.INTER_AREA),
                      cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST))
         return rgb, depth, small
+
+    def _depth_in_range(self, i: int, depth: np.ndarray) -> np.ndarray:
+        """Depth outside `depth_range` (and NaN, inf, <= 0) as 0. A frame whose measured depth
+        lies mostly outside the range is dropped whole: its scale is likely wrong, and a map
+        grown from it would be ruined."""
+        low, high = self.depth_range
+        measured = np.isfinite(depth) & (depth > 0)
+        kept = measured & (depth >= low) & (depth <= high)
+        n = int(measured.sum())
+        if n == 0:
+            if not self.frames_without_depth:
+                log.warning("frame %d has no valid depth, so it cannot grow the map (frames like it "
+                            "are counted in metrics.json)", i)
+            self.frames_without_depth += 1
+        elif kept.sum() < 0.5 * n:
+            median = float(np.median(depth[measured]))
+            if not self.frames_depth_out_of_range:
+                why = ("it looks like millimetres, not metres" if median > high and low <= median / 1000 <= high
+                       else "check the depth's unit and scale")
+                log.warning("frame %d: %.0f%% of its depth (median %.4g m) lies outside depth_min..depth_max "
+                            "= %g..%g m: %s. Frames like it are kept out of the map (counted in "
+                            "metrics.json)", i, 100 * (1 - kept.sum() / n), median, low, high, why)
+            self.frames_depth_out_of_range += 1
+            kept[:] = False
+        return np.where(kept, depth, 0).astype(np.float32)
 
     def _track(self, small: View) -> Tracked:
         if self._mapping.empty:

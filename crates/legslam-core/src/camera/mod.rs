@@ -36,6 +36,10 @@ impl Intrinsics {
         }
     }
 
+    /// Images larger than this many pixels (134 million, 11585 x 11585) are refused before
+    /// anything is allocated for them.
+    pub const MAX_PIXELS: usize = 1 << 27;
+
     /// Checks that the intrinsics describe a usable camera.
     pub fn validate(&self) -> Result<(), String> {
         let finite = [self.fx, self.fy, self.cx, self.cy]
@@ -54,6 +58,14 @@ impl Intrinsics {
             return Err(format!(
                 "image size must be non-zero, got {}x{}",
                 self.width, self.height
+            ));
+        }
+        if self.width.saturating_mul(self.height) > Self::MAX_PIXELS {
+            return Err(format!(
+                "a {}x{} image is too large: at most {} pixels",
+                self.width,
+                self.height,
+                Self::MAX_PIXELS
             ));
         }
         Ok(())
@@ -76,6 +88,15 @@ impl Intrinsics {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_image_too_large_to_allocate_is_refused_by_its_size() {
+        let k = Intrinsics::from_array([500.0, 500.0, 0.0, 0.0], 100_000, 100_000);
+        assert!(k
+            .validate()
+            .unwrap_err()
+            .contains("100000x100000 image is too large"));
+    }
 
     #[test]
     fn half_scale_keeps_pixel_centres_aligned() {
