@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -132,12 +133,22 @@ def test_a_termination_signal_stops_a_run_and_keeps_its_work(small_synthetic, tm
     cmd = [sys.executable, "-m", "legslam.cli", "run", str(small_synthetic), "--out", str(out),
            "--no-features", "--config", str(tmp_path / "slow.toml")]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 60
-    while not (out / "camera.json").is_file() and time.time() < deadline:
-        time.sleep(0.05)
-    time.sleep(1.5)  # a few frames in
+    lines: list[str] = []
+    first_frame = threading.Event()
+
+    def read_stderr():  # the first progress line comes after the first frame is done
+        for line in proc.stderr:
+            lines.append(line)
+            if line.startswith("frame "):
+                first_frame.set()
+
+    reader = threading.Thread(target=read_stderr)
+    reader.start()
+    assert first_frame.wait(timeout=120), "".join(lines)
     proc.send_signal(sig)
-    _, err = proc.communicate(timeout=120)
+    proc.wait(timeout=120)
+    reader.join(timeout=10)
+    err = "".join(lines)
     assert proc.returncode == 128 + sig, err
     assert f"stopped by {signal.Signals(sig).name}" in err and "stopped after" in err
     _, poses = read_tum(out / "trajectory.txt")
