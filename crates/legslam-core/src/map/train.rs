@@ -17,7 +17,8 @@ use crate::loss::{
 };
 use crate::optim::{normalize_quats, Adam, AdamConfig, Groups};
 use crate::raster::{
-    backward_into, render, BackwardScratch, Camera, Gradients, ImageGrads, RenderOptions, Rendered,
+    backward_into, render, render_into, BackwardScratch, Camera, Gradients, ImageGrads,
+    RenderOptions, Rendered, Simd,
 };
 use crate::rng::Rng;
 use crate::Real;
@@ -56,6 +57,9 @@ pub struct MapperConfig {
     /// first keyframe's exposure is the map's.
     pub exposure_lr: Real,
     pub seed: u64,
+    /// Composite with AVX2 where the CPU has it (false: the portable path everywhere; both give
+    /// the same bits).
+    pub simd: bool,
 }
 
 impl Default for MapperConfig {
@@ -84,6 +88,7 @@ impl Default for MapperConfig {
             pose_lr_rotation: 0.0,
             exposure_lr: 0.0,
             seed: 0,
+            simd: true,
         }
     }
 }
@@ -158,6 +163,9 @@ struct Scratch {
     /// The render under the keyframe's exposure.
     exposed: Vec<Real>,
     backward: BackwardScratch,
+    /// The colour pass's render, and the features-only pass's.
+    rendered: Rendered,
+    feature_rendered: Rendered,
     /// Gradients of the colour pass, and of the features-only pass.
     grads: Gradients,
     feature_grads: Gradients,
@@ -194,6 +202,11 @@ impl Mapper {
             depth: true,
             alpha: true,
             features,
+            simd: if self.config.simd {
+                Simd::Auto
+            } else {
+                Simd::Portable
+            },
             ..Default::default()
         }
     }
@@ -380,7 +393,14 @@ impl Mapper {
 
         let t = Instant::now();
         let cam = camera(&kf.pose, intr)?;
-        let r = render(&self.map.view(), &cam, &self.options(true, features_here))?;
+        // The render's buffers are the scratch's, taken for the iteration and put back.
+        let mut r = std::mem::take(&mut self.scratch.rendered);
+        render_into(
+            &self.map.view(),
+            &cam,
+            &self.options(true, features_here),
+            &mut r,
+        )?;
         report.render_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
@@ -460,6 +480,7 @@ impl Mapper {
         }
         let grads = &self.scratch.grads;
         self.stats.add(&grads.means2d, &r.radii, w, h);
+        self.scratch.rendered = r;
         self.adam.step(self.map.params_mut(), Groups::from(grads))?;
         normalize_quats(&mut self.map.quats)?;
         self.iteration += 1;
@@ -506,7 +527,8 @@ impl Mapper {
             alpha: false,
             ..self.options(false, true)
         };
-        let r = render(&self.map.view(), &cam, &opts)?;
+        let mut r = std::mem::take(&mut self.scratch.feature_rendered);
+        render_into(&self.map.view(), &cam, &opts, &mut r)?;
         report.render_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
@@ -535,6 +557,7 @@ impl Mapper {
             &mut sc.feature_grads,
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
+        self.scratch.feature_rendered = r;
         Ok(loss)
     }
 
@@ -621,4 +644,5 @@ crate::options!(MapperConfig, "mapper", {
     "pose_lr_translation" => pose_lr_translation,
     "pose_lr_rotation" => pose_lr_rotation,
     "exposure_lr" => exposure_lr,
+    "simd" => simd,
 });

@@ -8,16 +8,30 @@
 
 use rayon::prelude::*;
 
-use super::forward::{alpha_at, split_chunks};
-use super::math::{dot, V2, V3};
+use super::composite::{for_each_group, TileRect, TILE_LANES};
+use super::forward::split_chunks;
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+use super::lanes::Avx2;
+use super::lanes::{Lanes, Portable, Simd, LANES};
+use super::math::{V2, V3};
 use super::project::{backward_one, geometry, ParamGrads, Pinhole, ScreenGrads};
 use super::tiles::rect_area;
-use super::{Camera, Gaussians, Gradients, ImageGrads, Rendered, TILE};
+use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
 use crate::Real;
 
-/// Screen-space gradient slots per (tile, Gaussian) pair ahead of the K feature slots:
-/// xy (2), conic (3), opacity, colour (3), depth.
-const SLOTS: usize = 10;
+/// The screen-space gradient slots of a (tile, Gaussian) pair, ahead of its K feature slots.
+mod slot {
+    pub const X: usize = 0;
+    pub const Y: usize = 1;
+    /// The conic entries a, b, c.
+    pub const CONIC: usize = 2;
+    pub const OPACITY: usize = 5;
+    /// Red, green, blue.
+    pub const COLOR: usize = 6;
+    pub const DEPTH: usize = 9;
+    pub const COUNT: usize = 10;
+}
+const SLOTS: usize = slot::COUNT;
 
 fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> Result<(), String> {
     match grad {
@@ -84,105 +98,33 @@ pub fn backward_into(
     let bins = &st.bins;
     let stride = SLOTS + k;
 
-    // Per (tile, Gaussian) pair gradients; each tile owns a contiguous range.
+    // Per (tile, Gaussian) pair gradients; each tile owns a contiguous range and writes every
+    // slot of it.
     let pair_grads = &mut scratch.pair_grads;
-    zeroed(pair_grads, bins.pair_gauss.len() * stride);
+    pair_grads.resize(bins.pair_gauss.len() * stride, 0.0);
     let mut tile_slices = Vec::with_capacity(st.grid.len());
     let mut rest = pair_grads.as_mut_slice();
     for t in 0..st.grid.len() {
-        let n = (bins.tile_start[t + 1] - bins.tile_start[t]) as usize;
+        let n = bins.list(t).len();
         let (head, tail) = rest.split_at_mut(n * stride);
         tile_slices.push(head);
         rest = tail;
     }
-    tile_slices
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(t, out)| {
-            if out.is_empty() {
-                return;
+    let job = TileJob {
+        g,
+        r,
+        grads,
+        k,
+        cfg: &opts.config,
+    };
+    tile_slices.into_par_iter().enumerate().for_each_init(
+        || Box::new(TileGrads::default()),
+        |tg, (t, slots)| {
+            if !slots.is_empty() {
+                tile_backward(opts.simd, &job, t, tg, slots);
             }
-            let list =
-                &bins.pair_gauss[bins.tile_start[t] as usize..bins.tile_start[t + 1] as usize];
-            let (x0, y0) = ((t % st.grid.tiles_x) * TILE, (t / st.grid.tiles_x) * TILE);
-            let (x_end, y_end) = ((x0 + TILE).min(w), (y0 + TILE).min(h));
-            // Per pixel: the running transmittance and the running sum of gradient x value.
-            let mut trans = [1.0 as Real; TILE * TILE];
-            let mut prefix = [0.0 as Real; TILE * TILE];
-            // Per pixel: sum over channels of gradient x final value.
-            let mut total = [0.0 as Real; TILE * TILE];
-            for y in y0..y_end {
-                for x in x0..x_end {
-                    let p = y * w + x;
-                    let lp = (y - y0) * TILE + (x - x0);
-                    let mut sum = 0.0;
-                    if let Some(gc) = grads.color {
-                        sum += (0..3)
-                            .map(|c| gc[3 * p + c] * r.color[3 * p + c])
-                            .sum::<Real>();
-                    }
-                    if let Some(gd) = grads.depth {
-                        sum += gd[p] * r.depth[p];
-                    }
-                    if let Some(gf) = grads.features {
-                        sum += dot(&gf[p * k..][..k], &r.features[p * k..][..k]);
-                    }
-                    total[lp] = sum;
-                }
-            }
-            // Gaussian-major, front to back, as in the forward pass.
-            for (j, &gi) in list.iter().enumerate() {
-                let s = &st.splats[gi as usize];
-                let f = &g.features[gi as usize * k..][..k];
-                let slot = &mut out[j * stride..][..stride];
-                for y in s.rows(y0, y_end) {
-                    for x in s.row_span(y, x0, x_end) {
-                        let p = y * w + x;
-                        let lp = (y - y0) * TILE + (x - x0);
-                        if j >= st.pixel_end[p] as usize {
-                            continue;
-                        }
-                        let Some(a) = alpha_at(s, x as Real, y as Real, cfg) else {
-                            continue;
-                        };
-                        let t_now = trans[lp];
-                        let wgt = a.alpha * t_now;
-                        let gc = grads
-                            .color
-                            .map_or(V3::ZERO, |v| V3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]));
-                        let gd = grads.depth.map_or(0.0, |v| v[p]);
-                        let ga = grads.alpha.map_or(0.0, |v| v[p]);
-                        let mut x_j = gc.dot(s.color) + gd * s.depth;
-                        if let Some(gf) = grads.features {
-                            let gf = &gf[p * k..][..k];
-                            for (o, gfk) in slot[SLOTS..].iter_mut().zip(gf) {
-                                *o += wgt * gfk;
-                            }
-                            x_j += dot(gf, f);
-                        }
-                        slot[6] += wgt * gc.x;
-                        slot[7] += wgt * gc.y;
-                        slot[8] += wgt * gc.z;
-                        slot[9] += wgt * gd;
-                        prefix[lp] += wgt * x_j;
-                        let next = t_now * (1.0 - a.alpha);
-                        let behind = total[lp] - prefix[lp] + ga * (next - st.pixel_t[p]);
-                        let g_alpha = t_now * (x_j + ga) - behind / (1.0 - a.alpha);
-                        if !a.capped {
-                            slot[5] += a.falloff * g_alpha;
-                            let g_sigma = -a.alpha * g_alpha;
-                            let (cv, dx, dy) = (s.conic, a.dx, a.dy);
-                            slot[0] -= (cv.x * dx + cv.y * dy) * g_sigma;
-                            slot[1] -= (cv.y * dx + cv.z * dy) * g_sigma;
-                            slot[2] += 0.5 * dx * dx * g_sigma;
-                            slot[3] += dx * dy * g_sigma;
-                            slot[4] += 0.5 * dy * dy * g_sigma;
-                        }
-                        trans[lp] = next;
-                    }
-                }
-            }
-        });
+        },
+    );
 
     // Each Gaussian's pairs, in tile order, so that its sum is deterministic.
     let n = g.len();
@@ -242,11 +184,12 @@ pub fn backward_into(
                 let mut sg = ScreenGrads::default();
                 for &pr in pairs {
                     let s = &pair_grads[pr as usize * stride..][..stride];
-                    sg.xy += V2::new(s[0], s[1]);
-                    sg.conic += V3::new(s[2], s[3], s[4]);
-                    sg.opacity += s[5];
-                    sg.color += V3::new(s[6], s[7], s[8]);
-                    sg.depth += s[9];
+                    let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
+                    sg.xy += V2::new(s[slot::X], s[slot::Y]);
+                    sg.conic += v3(slot::CONIC);
+                    sg.opacity += s[slot::OPACITY];
+                    sg.color += v3(slot::COLOR);
+                    sg.depth += s[slot::DEPTH];
                     if k > 0 {
                         for (o, v) in gfeat[li * kf..][..kf].iter_mut().zip(&s[SLOTS..]) {
                             *o += v;
@@ -288,6 +231,200 @@ pub fn backward_into(
         }
     }
     Ok(())
+}
+
+/// What every tile of one backward pass reads.
+struct TileJob<'a> {
+    g: &'a Gaussians<'a>,
+    r: &'a Rendered,
+    grads: &'a ImageGrads<'a>,
+    /// Feature channels rendered.
+    k: usize,
+    cfg: &'a RasterConfig,
+}
+
+/// One tile's image gradients and forward results, per pixel, structure of arrays (indexed like
+/// the forward pass's accumulators), and the running state of the backward walk.
+struct TileGrads {
+    color: [[Real; TILE_LANES]; 3],
+    depth: [Real; TILE_LANES],
+    alpha: [Real; TILE_LANES],
+    /// Sum over channels of gradient x final value.
+    total: [Real; TILE_LANES],
+    /// Final transmittance, and how many Gaussians of the list the pixel composited.
+    t_final: [Real; TILE_LANES],
+    end: [u32; TILE_LANES],
+    /// Transmittance before the current Gaussian, and the running sum of gradient x value.
+    trans: [Real; TILE_LANES],
+    prefix: [Real; TILE_LANES],
+}
+
+impl Default for TileGrads {
+    fn default() -> Self {
+        TileGrads {
+            color: [[0.0; TILE_LANES]; 3],
+            depth: [0.0; TILE_LANES],
+            alpha: [0.0; TILE_LANES],
+            total: [0.0; TILE_LANES],
+            t_final: [0.0; TILE_LANES],
+            end: [0; TILE_LANES],
+            trans: [0.0; TILE_LANES],
+            prefix: [0.0; TILE_LANES],
+        }
+    }
+}
+
+impl TileGrads {
+    /// Gathers tile `r`'s pixels (pixels outside the image composite nothing).
+    #[inline(always)]
+    fn load<L: Lanes>(&mut self, job: &TileJob, r: &TileRect) {
+        let (w, k) = (job.r.width, job.k);
+        let (st, ig) = (&job.r.state, job.grads);
+        self.end.fill(0);
+        self.trans.fill(1.0);
+        self.prefix.fill(0.0);
+        for y in r.y0..r.y_end {
+            for x in r.x0..r.x_end {
+                let (p, lp) = (y * w + x, (y - r.y0) * TILE + (x - r.x0));
+                let mut total = 0.0;
+                for c in 0..3 {
+                    let g = ig.color.map_or(0.0, |v| v[3 * p + c]);
+                    self.color[c][lp] = g;
+                    total += g * job.r.color.get(3 * p + c).copied().unwrap_or(0.0);
+                }
+                let gd = ig.depth.map_or(0.0, |v| v[p]);
+                self.depth[lp] = gd;
+                total += gd * job.r.depth.get(p).copied().unwrap_or(0.0);
+                if let Some(gf) = ig.features {
+                    total += L::dot(&gf[p * k..][..k], &job.r.features[p * k..][..k]);
+                }
+                self.total[lp] = total;
+                self.alpha[lp] = ig.alpha.map_or(0.0, |v| v[p]);
+                self.t_final[lp] = st.pixel_t[p];
+                self.end[lp] = st.pixel_end[p];
+            }
+        }
+    }
+}
+
+/// The backward walk over tile `t` through the implementation `simd` chose: `slots` receives
+/// one gradient slot per pair of the tile's list.
+fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    if simd == Simd::Avx2 {
+        // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
+        return unsafe { tile_backward_avx2(job, t, tg, slots) };
+    }
+    let _ = simd;
+    walk_tile::<Portable>(job, t, tg, slots)
+}
+
+/// [`walk_tile`] compiled with AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+#[target_feature(enable = "avx2")]
+unsafe fn tile_backward_avx2(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
+    walk_tile::<Avx2>(job, t, tg, slots)
+}
+
+/// Walks tile `t`'s list front to back as the forward pass did (Gaussian-major, eight pixels
+/// at a time), turning d(loss)/d(pixel) into each pair's screen-space and feature gradients.
+#[inline(always)]
+fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
+    let (st, k, cfg) = (&job.r.state, job.k, job.cfg);
+    let stride = SLOTS + k;
+    let r = TileRect::new(&st.grid, t, job.r.width, job.r.height);
+    let cols = r.columns();
+    tg.load::<L>(job, &r);
+    let list = st.bins.list(t);
+    // Past the last pixel's last contributor nothing has a gradient.
+    let walked = tg.end.iter().copied().max().unwrap_or(0) as usize;
+    slots[walked * stride..].fill(0.0);
+    let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
+    let gf = job.grads.features.filter(|_| k > 0);
+    for (j, &gi) in list[..walked].iter().enumerate() {
+        let s = &st.splats[gi as usize];
+        let f = &job.g.features[gi as usize * k..][..k];
+        let slot = &mut slots[j * stride..][..stride];
+        slot.fill(0.0);
+        let (slot, feat_slot) = slot.split_at_mut(SLOTS);
+        let color = s.color.to_array().map(L::splat);
+        let depth = L::splat(s.depth);
+        let (a, b, c) = (s.conic.x, s.conic.y, s.conic.z);
+        let mut acc = [zero; SLOTS];
+        for_each_group(s, &r, |grp| {
+            let lp = grp.lp;
+            let cv = grp.cover::<L>(s, &cols, cfg);
+            let ok = L::and(cv.ok, L::below(j as u32, &tg.end[lp..]));
+            if L::bits(ok) == 0 {
+                return;
+            }
+            let t = L::load(&tg.trans[lp..]);
+            let wgt = L::select(ok, cv.alpha.mul(t), zero);
+            let gc = [0, 1, 2].map(|ch| L::load(&tg.color[ch][lp..]));
+            let gd = L::load(&tg.depth[lp..]);
+            let ga = L::load(&tg.alpha[lp..]);
+            let mut x_j = gc[0]
+                .mul(color[0])
+                .add(gc[1].mul(color[1]))
+                .add(gc[2].mul(color[2]))
+                .add(gd.mul(depth));
+            if let Some(gf) = gf {
+                let mut w = [0.0; LANES];
+                wgt.store(&mut w);
+                let mut dots = [0.0; LANES];
+                let mut bits = L::bits(ok);
+                let p0 = grp.y * job.r.width + r.x0 + grp.gx;
+                while bits != 0 {
+                    let l = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    let gfp = &gf[(p0 + l) * k..][..k];
+                    L::axpy(feat_slot, w[l], gfp);
+                    dots[l] = L::dot(gfp, f);
+                }
+                x_j = x_j.add(L::load(&dots));
+            }
+            for ch in 0..3 {
+                acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
+            }
+            acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
+            let prefix = L::load(&tg.prefix[lp..]);
+            let prefix_next = prefix.add(wgt.mul(x_j));
+            let next = t.mul(one.sub(cv.alpha));
+            let t_final = L::load(&tg.t_final[lp..]);
+            let total = L::load(&tg.total[lp..]);
+            // What lies behind this Gaussian, and d(loss)/d(its alpha).
+            let behind = total.sub(prefix_next).add(ga.mul(next.sub(t_final)));
+            let g_alpha = t.mul(x_j.add(ga)).sub(behind.div(one.sub(cv.alpha)));
+            let g_alpha = L::select(L::and_not(ok, cv.capped), g_alpha, zero);
+            acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha));
+            let g_sigma = zero.sub(cv.alpha.mul(g_alpha));
+            let dx = cv.dx;
+            let dy = grp.y as Real - s.xy.y;
+            let d_mean = [
+                L::splat(a).mul(dx).add(L::splat(b * dy)),
+                L::splat(b).mul(dx).add(L::splat(c * dy)),
+            ];
+            for (i, d) in d_mean.into_iter().enumerate() {
+                acc[slot::X + i] = acc[slot::X + i].sub(d.mul(g_sigma));
+            }
+            let d_conic = [
+                half.mul(dx).mul(dx),
+                dx.mul(L::splat(dy)),
+                L::splat(0.5 * dy * dy),
+            ];
+            for (i, d) in d_conic.into_iter().enumerate() {
+                acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma));
+            }
+            L::select(ok, next, t).store(&mut tg.trans[lp..]);
+            L::select(ok, prefix_next, prefix).store(&mut tg.prefix[lp..]);
+        });
+        for (o, v) in slot.iter_mut().zip(acc) {
+            *o = v.hsum();
+        }
+    }
 }
 
 /// Makes `v` hold `len` zeros, reusing its allocation.

@@ -2,9 +2,13 @@
 
 use rayon::prelude::*;
 
+use super::composite::{composite, TileAcc, TileRect};
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+use super::lanes::Avx2;
+use super::lanes::{Portable, Simd};
 use super::math::{sigmoid, V2, V3};
 use super::project::{color_raw, extent, extent_bound, geometry, Pinhole};
-use super::tiles::{bin, rect, Bins, Grid, Rect};
+use super::tiles::{bin, rect, rect_area, Bins, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
 use crate::Real;
 
@@ -30,32 +34,11 @@ impl Splat {
         span(self.xy.y - self.ext.y, self.xy.y + self.ext.y, y0, y_end)
     }
 
-    /// Pixels of row `y` within [x0, x_end) inside the cut-off ellipse
-    /// 0.5 d^T conic d <= sigma_max (widened a hair, so that the alpha test stays the one
-    /// exact decision): solving the quadratic in dx skips the bounding box's empty corners.
+    /// Columns of the tile [x0, x_end) that the Gaussian's extent reaches.
     #[inline(always)]
-    pub fn row_span(&self, y: usize, x0: usize, x_end: usize) -> std::ops::Range<usize> {
-        let (a, b, c) = (self.conic.x, self.conic.y, self.conic.z);
-        let dy = y as Real - self.xy.y;
-        let level = 2.0 * (self.sigma_max + 2e-3);
-        let disc = (b * dy) * (b * dy) - a * (c * dy * dy - level);
-        if disc.is_nan() || disc < 0.0 {
-            return x0..x0;
-        }
-        let (mid, half) = (self.xy.x - b * dy / a, disc.sqrt() / a);
-        span(mid - half - 1e-3, mid + half + 1e-3, x0, x_end)
+    pub fn columns(&self, x0: usize, x_end: usize) -> std::ops::Range<usize> {
+        span(self.xy.x - self.ext.x, self.xy.x + self.ext.x, x0, x_end)
     }
-}
-
-/// One Gaussian's alpha at one pixel, with what the backward pass needs of it.
-pub(crate) struct AlphaAt {
-    pub alpha: Real,
-    /// exp(-sigma): d(alpha)/d(opacity) when not capped.
-    pub falloff: Real,
-    pub dx: Real,
-    pub dy: Real,
-    /// Whether alpha was capped at `alpha_max` (its gradient is then zero).
-    pub capped: bool,
 }
 
 /// Integer coordinates in [lo, hi] clipped to [start, end).
@@ -66,34 +49,8 @@ fn span(lo: Real, hi: Real, start: usize, end: usize) -> std::ops::Range<usize> 
     first.max(start)..last.max(first.max(start))
 }
 
-/// The one place that decides whether and how much a Gaussian covers a pixel; forward and
-/// backward both call it so that their decisions agree exactly.
-#[inline(always)]
-pub(crate) fn alpha_at(s: &Splat, px: Real, py: Real, cfg: &RasterConfig) -> Option<AlphaAt> {
-    let dx = px - s.xy.x;
-    let dy = py - s.xy.y;
-    let sigma = 0.5 * (s.conic.x * dx * dx + s.conic.z * dy * dy) + s.conic.y * dx * dy;
-    // Beyond the cut-off ellipse (the bulk of a Gaussian's bounding box) skip the exp; the
-    // margin leaves the exact decision on the ellipse's rim to the alpha test below.
-    if sigma < 0.0 || sigma > s.sigma_max + 1e-3 {
-        return None;
-    }
-    let falloff = (-sigma).exp();
-    let raw = s.opacity * falloff;
-    if raw < cfg.alpha_min {
-        return None;
-    }
-    Some(AlphaAt {
-        alpha: raw.min(cfg.alpha_max),
-        falloff,
-        dx,
-        dy,
-        capped: raw > cfg.alpha_max,
-    })
-}
-
 /// What the backward pass needs from the forward pass.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub(crate) struct State {
     pub grid: Grid,
     pub splats: Vec<Splat>,
@@ -118,8 +75,22 @@ pub(crate) fn split_chunks<T>(v: &mut [T], len: usize, n: usize) -> Vec<&mut [T]
 /// Renders the requested images. Does not validate the Gaussians (see
 /// [`Gaussians::validate`]): the engine's own loops pass arrays they maintain.
 pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rendered, String> {
+    let mut out = Rendered::default();
+    render_into(g, cam, opts, &mut out)?;
+    Ok(out)
+}
+
+/// [`render`] into `out`, reusing its buffers (a training loop renders the same sizes again
+/// and again; fresh buffers would page-fault over megabytes per call).
+pub fn render_into(
+    g: &Gaussians,
+    cam: &Camera,
+    opts: &RenderOptions,
+    out: &mut Rendered,
+) -> Result<(), String> {
     opts.config.validate()?;
     cam.intrinsics.validate()?;
+    let simd = opts.simd.resolve()?;
     let max_degree = (g.sh_coeffs as f64).sqrt() as usize - 1;
     if opts.color && opts.sh_degree > max_degree {
         return Err(format!(
@@ -131,45 +102,127 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
     }
     let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
     let k = if opts.features { g.num_features } else { 0 };
+    let grid = Grid::new(w, h);
+    let st = &mut out.state;
+    project_all(g, cam, opts, &grid, st, &mut out.radii);
+    st.bins = bin(&grid, &st.rects, &st.splats);
+    st.grid = grid;
+    st.options = RenderOptions { simd, ..*opts };
+
+    // Compositing, one row of tiles at a time (its pixels are contiguous in every image).
+    let npix = w * h;
+    let sized = |v: &mut Vec<Real>, on: bool, len: usize| {
+        v.clear();
+        v.resize(if on { len } else { 0 }, 0.0);
+    };
+    sized(&mut out.color, opts.color, npix * 3);
+    sized(&mut out.depth, opts.depth, npix);
+    sized(&mut out.alpha, opts.alpha, npix);
+    sized(&mut out.features, k > 0, npix * k);
+    st.pixel_end.resize(npix, 0);
+    st.pixel_t.resize(npix, 0.0);
+    let rows = TILE * w;
+    let n = grid.tiles_y;
+    let outs: Vec<_> = split_chunks(&mut out.color, rows * 3, n)
+        .into_iter()
+        .zip(split_chunks(&mut out.depth, rows, n))
+        .zip(split_chunks(&mut out.alpha, rows, n))
+        .zip(split_chunks(&mut out.features, rows * k, n))
+        .zip(split_chunks(&mut st.pixel_end, rows, n))
+        .zip(split_chunks(&mut st.pixel_t, rows, n))
+        .enumerate()
+        .collect();
+    let (bins, splats, cfg) = (&st.bins, &st.splats[..], &opts.config);
+    outs.into_par_iter()
+        .for_each(|(ty, (((((col, dep), alp), fea), end), tr))| {
+            let mut acc = TileAcc::new(k);
+            for tx in 0..grid.tiles_x {
+                let t = ty * grid.tiles_x + tx;
+                let r = TileRect::new(&grid, t, w, h);
+                let list = bins.list(t);
+                acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
+                if !list.is_empty() {
+                    composite_tile(simd, &mut acc, list, splats, g.features, k, &r, cfg);
+                }
+                for y in r.y0..r.y_end {
+                    for x in r.x0..r.x_end {
+                        let lp = (y - r.y0) * TILE + (x - r.x0);
+                        let p = (y - r.y0) * w + x;
+                        if !col.is_empty() {
+                            for c in 0..3 {
+                                col[3 * p + c] = acc.color[c][lp];
+                            }
+                        }
+                        if !dep.is_empty() {
+                            dep[p] = acc.depth[lp];
+                        }
+                        if !alp.is_empty() {
+                            alp[p] = 1.0 - acc.trans[lp];
+                        }
+                        if k > 0 {
+                            fea[p * k..][..k].copy_from_slice(&acc.feat[lp * k..][..k]);
+                        }
+                        end[p] = acc.end[lp];
+                        tr[p] = acc.trans[lp];
+                    }
+                }
+            }
+        });
+    out.width = w;
+    out.height = h;
+    out.num_features = k;
+    Ok(())
+}
+
+/// Projects every Gaussian into `st.splats` and `st.rects` (culled ones get an empty rect) and
+/// their screen radii into `radii`.
+fn project_all(
+    g: &Gaussians,
+    cam: &Camera,
+    opts: &RenderOptions,
+    grid: &Grid,
+    st: &mut State,
+    radii: &mut Vec<Real>,
+) {
     let cfg = &opts.config;
     let pin = Pinhole::new(cam, cfg);
-    let grid = Grid::new(w, h);
     let cam_pos = cam.position();
-
-    // Projection, one Gaussian at a time.
-    let projected: Vec<(Splat, Rect, Real)> = (0..g.len())
-        .into_par_iter()
+    let n = g.len();
+    st.splats.resize(n, Splat::default());
+    st.rects.resize(n, [0; 4]);
+    radii.resize(n, 0.0);
+    st.splats
+        .par_iter_mut()
+        .zip(st.rects.par_iter_mut())
+        .zip(radii.par_iter_mut())
+        .enumerate()
         .with_min_len(1024)
-        .map(|i| {
-            let culled = (Splat::default(), [0; 4], 0.0);
+        .for_each(|(i, ((splat, rect), radius))| {
+            *rect = [0; 4];
+            *radius = 0.0;
             let opacity = sigmoid(g.opacity_logits[i]);
             // Most of a large map lies outside any one view: rule those out before the full
             // projection.
             match extent_bound(g, i, cam, &pin, opacity, cfg) {
-                Some((xy, e)) => {
-                    let r = rect(&grid, xy.x, xy.y, e.x, e.y);
-                    if r[0] >= r[2] || r[1] >= r[3] {
-                        return culled;
-                    }
-                }
-                None => return culled,
+                Some((xy, e)) if rect_area(&rect_of(grid, xy, e)) > 0 => {}
+                _ => return,
             }
             let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
-                return culled;
+                return;
             };
             let Some(ext) = extent(&geo, opacity, cfg) else {
-                return culled;
+                return;
             };
-            let r = rect(&grid, geo.xy.x, geo.xy.y, ext.x, ext.y);
-            if r[0] >= r[2] || r[1] >= r[3] {
-                return culled;
+            let r = rect_of(grid, geo.xy, ext);
+            if rect_area(&r) == 0 {
+                return;
             }
             let color = if opts.color {
                 color_raw(g, i, opts.sh_degree, cam_pos).max(V3::ZERO)
             } else {
                 V3::ZERO
             };
-            let splat = Splat {
+            *splat = Splat {
                 xy: geo.xy,
                 conic: geo.conic,
                 opacity,
@@ -178,162 +231,52 @@ pub fn render(g: &Gaussians, cam: &Camera, opts: &RenderOptions) -> Result<Rende
                 ext,
                 sigma_max: (opacity / cfg.alpha_min).ln(),
             };
-            (splat, r, ext.x.max(ext.y))
-        })
-        .collect();
-    let mut splats = Vec::with_capacity(g.len());
-    let mut rects = Vec::with_capacity(g.len());
-    let mut radii = Vec::with_capacity(g.len());
-    for (s, r, rad) in projected {
-        splats.push(s);
-        rects.push(r);
-        radii.push(rad);
-    }
-    let depth_keys: Vec<Real> = splats.iter().map(|s| s.depth).collect();
-    let bins = bin(&grid, &rects, &depth_keys);
-
-    // Compositing, one row of tiles at a time (its pixels are contiguous in every image).
-    let npix = w * h;
-    let mut color = vec![0.0; if opts.color { npix * 3 } else { 0 }];
-    let mut depth = vec![0.0; if opts.depth { npix } else { 0 }];
-    let mut alpha = vec![0.0; if opts.alpha { npix } else { 0 }];
-    let mut features = vec![0.0; npix * k];
-    let mut pixel_end = vec![0u32; npix];
-    let mut pixel_t = vec![1.0; npix];
-    let rows = TILE * w;
-    let n = grid.tiles_y;
-    let outs: Vec<_> = split_chunks(&mut color, rows * 3, n)
-        .into_iter()
-        .zip(split_chunks(&mut depth, rows, n))
-        .zip(split_chunks(&mut alpha, rows, n))
-        .zip(split_chunks(&mut features, rows * k, n))
-        .zip(split_chunks(&mut pixel_end, rows, n))
-        .zip(split_chunks(&mut pixel_t, rows, n))
-        .enumerate()
-        .collect();
-    outs.into_par_iter()
-        .for_each(|(ty, (((((col, dep), alp), fea), end), tr))| {
-            let mut tile = TileState::new(k);
-            for tx in 0..grid.tiles_x {
-                let t = ty * grid.tiles_x + tx;
-                let list =
-                    &bins.pair_gauss[bins.tile_start[t] as usize..bins.tile_start[t + 1] as usize];
-                if list.is_empty() {
-                    continue;
-                }
-                let (x0, y0) = (tx * TILE, ty * TILE);
-                let (x_end, y_end) = ((x0 + TILE).min(w), (y0 + TILE).min(h));
-                tile.reset((x_end - x0) * (y_end - y0));
-                // Gaussian-major, front to back: each pixel still sees its Gaussians in depth
-                // order, but only the pixels inside a Gaussian's extent are visited.
-                for (j, &gi) in list.iter().enumerate() {
-                    let s = &splats[gi as usize];
-                    let f = &g.features[gi as usize * k..][..k];
-                    for y in s.rows(y0, y_end) {
-                        for x in s.row_span(y, x0, x_end) {
-                            let lp = (y - y0) * TILE + (x - x0);
-                            if tile.done[lp] {
-                                continue;
-                            }
-                            let Some(a) = alpha_at(s, x as Real, y as Real, cfg) else {
-                                continue;
-                            };
-                            let trans = tile.trans[lp];
-                            let next = trans * (1.0 - a.alpha);
-                            if next < cfg.transmittance_min {
-                                tile.done[lp] = true;
-                                tile.active -= 1;
-                                continue;
-                            }
-                            let wgt = a.alpha * trans;
-                            tile.color[lp] += s.color * wgt;
-                            tile.depth[lp] += s.depth * wgt;
-                            for (o, fv) in tile.feat[lp * k..][..k].iter_mut().zip(f) {
-                                *o += wgt * fv;
-                            }
-                            tile.trans[lp] = next;
-                            tile.end[lp] = j as u32 + 1;
-                        }
-                    }
-                    if tile.active == 0 {
-                        break;
-                    }
-                }
-                for y in y0..y_end {
-                    for x in x0..x_end {
-                        let lp = (y - y0) * TILE + (x - x0);
-                        let p = (y - y0) * w + x;
-                        if !col.is_empty() {
-                            col[3 * p..3 * p + 3].copy_from_slice(&tile.color[lp].to_array());
-                        }
-                        if !dep.is_empty() {
-                            dep[p] = tile.depth[lp];
-                        }
-                        if !alp.is_empty() {
-                            alp[p] = 1.0 - tile.trans[lp];
-                        }
-                        if k > 0 {
-                            fea[p * k..][..k].copy_from_slice(&tile.feat[lp * k..][..k]);
-                        }
-                        end[p] = tile.end[lp];
-                        tr[p] = tile.trans[lp];
-                    }
-                }
-            }
+            *rect = r;
+            *radius = ext.x.max(ext.y);
         });
-
-    Ok(Rendered {
-        width: w,
-        height: h,
-        num_features: k,
-        color,
-        depth,
-        alpha,
-        features,
-        radii,
-        state: State {
-            grid,
-            splats,
-            rects,
-            bins,
-            pixel_end,
-            pixel_t,
-            options: *opts,
-        },
-    })
 }
 
-/// Per-pixel accumulators of one tile, indexed `(y - y0) * TILE + (x - x0)`.
-struct TileState {
-    trans: [Real; TILE * TILE],
-    color: [V3; TILE * TILE],
-    depth: [Real; TILE * TILE],
-    end: [u32; TILE * TILE],
-    done: [bool; TILE * TILE],
-    feat: Vec<Real>,
-    active: usize,
+#[inline]
+fn rect_of(grid: &Grid, xy: V2, ext: V2) -> Rect {
+    rect(grid, xy.x, xy.y, ext.x, ext.y)
 }
 
-impl TileState {
-    fn new(k: usize) -> Self {
-        TileState {
-            trans: [1.0; TILE * TILE],
-            color: [V3::ZERO; TILE * TILE],
-            depth: [0.0; TILE * TILE],
-            end: [0; TILE * TILE],
-            done: [false; TILE * TILE],
-            feat: vec![0.0; TILE * TILE * k],
-            active: 0,
-        }
+/// One tile through the implementation `simd` chose.
+#[allow(clippy::too_many_arguments)]
+fn composite_tile(
+    simd: Simd,
+    acc: &mut TileAcc,
+    list: &[u32],
+    splats: &[Splat],
+    features: &[Real],
+    k: usize,
+    r: &TileRect,
+    cfg: &RasterConfig,
+) {
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    if simd == Simd::Avx2 {
+        // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
+        return unsafe { composite_avx2(acc, list, splats, features, k, r, cfg) };
     }
+    let _ = simd;
+    composite::<Portable>(acc, list, splats, features, k, r, cfg)
+}
 
-    fn reset(&mut self, pixels: usize) {
-        self.trans.fill(1.0);
-        self.color.fill(V3::ZERO);
-        self.depth.fill(0.0);
-        self.end.fill(0);
-        self.done.fill(false);
-        self.feat.fill(0.0);
-        self.active = pixels;
-    }
+/// [`composite`] compiled with AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+#[target_feature(enable = "avx2")]
+#[allow(clippy::too_many_arguments)]
+unsafe fn composite_avx2(
+    acc: &mut TileAcc,
+    list: &[u32],
+    splats: &[Splat],
+    features: &[Real],
+    k: usize,
+    r: &TileRect,
+    cfg: &RasterConfig,
+) {
+    composite::<Avx2>(acc, list, splats, features, k, r, cfg)
 }

@@ -10,8 +10,10 @@
 //! perturbs the world-to-camera pose on the left: `T_cw(xi) = exp(xi^) * T_cw`.
 
 mod backward;
+mod composite;
 mod config;
 mod forward;
+mod lanes;
 pub(crate) mod math;
 mod project;
 pub mod sh;
@@ -19,7 +21,8 @@ mod tiles;
 
 pub use backward::{backward, backward_into, BackwardScratch};
 pub use config::{RasterConfig, TILE};
-pub use forward::render;
+pub use forward::{render, render_into};
+pub use lanes::{avx2_available, Simd};
 
 use crate::camera::{Intrinsics, Pose};
 use crate::Real;
@@ -157,6 +160,8 @@ pub struct RenderOptions {
     pub alpha: bool,
     pub features: bool,
     pub config: RasterConfig,
+    /// Which compositing implementation runs (the results are the same bits either way).
+    pub simd: Simd,
 }
 
 impl Default for RenderOptions {
@@ -168,12 +173,13 @@ impl Default for RenderOptions {
             alpha: true,
             features: true,
             config: RasterConfig::default(),
+            simd: Simd::Auto,
         }
     }
 }
 
 /// Rendered images (empty when not requested) and the state the backward pass needs.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct Rendered {
     pub width: usize,
     pub height: usize,

@@ -4,6 +4,7 @@ use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
 use rayon::prelude::*;
 
+use super::forward::Splat;
 use super::TILE;
 use crate::Real;
 
@@ -67,9 +68,17 @@ pub(crate) struct Bins {
     pub pair_gauss: Vec<u32>,
 }
 
+impl Bins {
+    /// Tile `t`'s Gaussians, front to back.
+    #[inline]
+    pub fn list(&self, t: usize) -> &[u32] {
+        &self.pair_gauss[self.tile_start[t] as usize..self.tile_start[t + 1] as usize]
+    }
+}
+
 /// Bins Gaussians by tile and sorts each tile by depth, ties by index. The keys are unique,
 /// so the result does not depend on the order the parallel fill happens to run in.
-pub(crate) fn bin(grid: &Grid, rects: &[Rect], depth: &[Real]) -> Bins {
+pub(crate) fn bin(grid: &Grid, rects: &[Rect], splats: &[Splat]) -> Bins {
     let n_tiles = grid.len();
     let counts: Vec<AtomicU32> = (0..n_tiles).map(|_| AtomicU32::new(0)).collect();
     rects.par_iter().with_min_len(4096).for_each(|r| {
@@ -97,7 +106,7 @@ pub(crate) fn bin(grid: &Grid, rects: &[Rect], depth: &[Real]) -> Bins {
                 return;
             }
             #[allow(clippy::unnecessary_cast)] // Real may be f64
-            let key = ((depth[i] as f32).to_bits() as u64) << 32 | i as u64;
+            let key = ((splats[i].depth as f32).to_bits() as u64) << 32 | i as u64;
             for_each_tile(grid, r, |t| {
                 let c = cursor[t].fetch_add(1, Ordering::Relaxed);
                 slots[c as usize].store(key, Ordering::Relaxed);

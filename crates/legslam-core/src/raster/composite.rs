@@ -1,0 +1,241 @@
+//! Front-to-back compositing of one tile, eight pixels of a row at a time, written once over
+//! [`Lanes`] and run by the portable or the AVX2 implementation. [`cover`] is the one place that
+//! decides which pixels a Gaussian covers and how much: the backward pass calls it too, so that
+//! both passes make the same decisions, bit for bit.
+
+use super::forward::Splat;
+use super::lanes::{Lanes, LANES};
+use super::tiles::Grid;
+use super::{RasterConfig, TILE};
+use crate::Real;
+
+/// Pixels of a tile.
+pub(crate) const TILE_PIXELS: usize = TILE * TILE;
+/// Per-pixel arrays of a tile are this long: a group of eight that starts near a row's end
+/// reads (and writes back unchanged) the lanes beyond it.
+pub(crate) const TILE_LANES: usize = TILE_PIXELS + LANES;
+
+/// The pixels [x0, x_end) x [y0, y_end) of a tile.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct TileRect {
+    pub x0: usize,
+    pub y0: usize,
+    pub x_end: usize,
+    pub y_end: usize,
+}
+
+impl TileRect {
+    pub fn new(grid: &Grid, t: usize, width: usize, height: usize) -> Self {
+        let (x0, y0) = ((t % grid.tiles_x) * TILE, (t / grid.tiles_x) * TILE);
+        TileRect {
+            x0,
+            y0,
+            x_end: (x0 + TILE).min(width),
+            y_end: (y0 + TILE).min(height),
+        }
+    }
+
+    /// The x coordinates of the tile's columns and beyond, loaded eight at a time.
+    pub fn columns(&self) -> [Real; TILE + LANES] {
+        std::array::from_fn(|i| (self.x0 + i) as Real)
+    }
+}
+
+/// One Gaussian over eight pixels of a row.
+pub(crate) struct Cover<L: Lanes> {
+    /// Lanes inside the row's span whose alpha reaches `alpha_min`.
+    pub ok: L::Mask,
+    /// Alpha, capped at `alpha_max`.
+    pub alpha: L,
+    /// exp(-sigma): d(alpha)/d(opacity) where alpha is not capped.
+    pub falloff: L,
+    pub dx: L,
+    /// Lanes where alpha was capped (its gradient is then zero).
+    pub capped: L::Mask,
+}
+
+/// Gaussian `s` at the pixels `px` of row `y` whose x lies in [lo, hi) (the row's span).
+#[inline(always)]
+pub(crate) fn cover<L: Lanes>(
+    s: &Splat,
+    y: usize,
+    px: L,
+    lo: Real,
+    hi: Real,
+    cfg: &RasterConfig,
+) -> Cover<L> {
+    let dy = y as Real - s.xy.y;
+    let zero = L::splat(0.0);
+    let inside = L::and_not(px.lt(L::splat(hi)), px.lt(L::splat(lo)));
+    let dx = px.sub(L::splat(s.xy.x));
+    let sigma = L::splat(0.5)
+        .mul(
+            L::splat(s.conic.x)
+                .mul(dx)
+                .mul(dx)
+                .add(L::splat(s.conic.z * dy * dy)),
+        )
+        .add(L::splat(s.conic.y * dy).mul(dx));
+    // Beyond the cut-off ellipse the alpha test would fail anyway; the margin leaves the exact
+    // decision on the ellipse's rim to the alpha test.
+    let in_ellipse = L::and_not(sigma.le(L::splat(s.sigma_max + 1e-3)), sigma.lt(zero));
+    let falloff = zero.sub(sigma).exp();
+    let raw = L::splat(s.opacity).mul(falloff);
+    let ok = L::and_not(L::and(inside, in_ellipse), raw.lt(L::splat(cfg.alpha_min)));
+    Cover {
+        ok,
+        alpha: raw.min(L::splat(cfg.alpha_max)),
+        falloff,
+        dx,
+        capped: raw.gt(L::splat(cfg.alpha_max)),
+    }
+}
+
+/// Eight consecutive pixels of a row, from a column of the tile that a Gaussian's extent
+/// reaches; lanes past its extent (or the tile) are masked out.
+#[derive(Clone, Copy)]
+pub(crate) struct Group {
+    pub y: usize,
+    /// Tile-local index of the first pixel, and its column within the tile.
+    pub lp: usize,
+    pub gx: usize,
+    /// The columns [lo, hi) of the extent within the tile.
+    pub lo: Real,
+    pub hi: Real,
+}
+
+impl Group {
+    /// Gaussian `s` over the group's pixels (`cols`: [`TileRect::columns`]).
+    #[inline(always)]
+    pub fn cover<L: Lanes>(
+        &self,
+        s: &Splat,
+        cols: &[Real; TILE + LANES],
+        cfg: &RasterConfig,
+    ) -> Cover<L> {
+        cover(s, self.y, L::load(&cols[self.gx..]), self.lo, self.hi, cfg)
+    }
+}
+
+/// Calls `f` for each group of eight pixels that covers Gaussian `s`'s extent in tile `r`, row
+/// by row, starting at the extent's first column (a Gaussian a few pixels wide takes one group
+/// a row).
+#[inline(always)]
+pub(crate) fn for_each_group(s: &Splat, r: &TileRect, mut f: impl FnMut(Group)) {
+    let columns = s.columns(r.x0, r.x_end);
+    if columns.is_empty() {
+        return;
+    }
+    let (lo, hi) = (columns.start as Real, columns.end as Real);
+    for y in s.rows(r.y0, r.y_end) {
+        let mut gx = columns.start - r.x0;
+        while gx < columns.end - r.x0 {
+            let lp = (y - r.y0) * TILE + gx;
+            f(Group { y, lp, gx, lo, hi });
+            gx += LANES;
+        }
+    }
+}
+
+/// Per-pixel accumulators of one tile, structure of arrays, indexed (y - y0) * TILE + (x - x0).
+pub(crate) struct TileAcc {
+    pub trans: [Real; TILE_LANES],
+    pub color: [[Real; TILE_LANES]; 3],
+    pub depth: [Real; TILE_LANES],
+    /// 1 where the pixel has stopped compositing.
+    done: [Real; TILE_LANES],
+    /// The last contributor's position in the tile's list, + 1.
+    pub end: [u32; TILE_LANES],
+    /// [TILE_PIXELS, k]
+    pub feat: Vec<Real>,
+    active: usize,
+}
+
+impl TileAcc {
+    pub fn new(k: usize) -> Self {
+        TileAcc {
+            trans: [1.0; TILE_LANES],
+            color: [[0.0; TILE_LANES]; 3],
+            depth: [0.0; TILE_LANES],
+            done: [0.0; TILE_LANES],
+            end: [0; TILE_LANES],
+            feat: vec![0.0; TILE_PIXELS * k],
+            active: 0,
+        }
+    }
+
+    /// Back to an empty tile whose `pixels` pixels all composite.
+    pub fn reset(&mut self, pixels: usize) {
+        self.trans.fill(1.0);
+        self.color.iter_mut().for_each(|c| c.fill(0.0));
+        self.depth.fill(0.0);
+        self.done.fill(0.0);
+        self.end.fill(0);
+        self.feat.fill(0.0);
+        self.active = pixels;
+    }
+}
+
+/// Composites the tile's list `list` (front to back) into `acc`: Gaussian-major, so that only
+/// the pixels inside each Gaussian's span are visited, eight at a time; every pixel still sees
+/// its Gaussians in depth order. `features` is [N, k].
+#[inline(always)]
+pub(crate) fn composite<L: Lanes>(
+    acc: &mut TileAcc,
+    list: &[u32],
+    splats: &[Splat],
+    features: &[Real],
+    k: usize,
+    r: &TileRect,
+    cfg: &RasterConfig,
+) {
+    let cols = r.columns();
+    let (zero, one) = (L::splat(0.0), L::splat(1.0));
+    let t_min = L::splat(cfg.transmittance_min);
+    for (j, &gi) in list.iter().enumerate() {
+        let s = &splats[gi as usize];
+        let f = &features[gi as usize * k..][..k];
+        let color = s.color.to_array().map(L::splat);
+        let depth = L::splat(s.depth);
+        for_each_group(s, r, |g| {
+            let lp = g.lp;
+            let c = g.cover::<L>(s, &cols, cfg);
+            let done = L::load(&acc.done[lp..]);
+            let live = L::and_not(c.ok, done.gt(zero));
+            if L::bits(live) == 0 {
+                return;
+            }
+            let t = L::load(&acc.trans[lp..]);
+            let next = t.mul(one.sub(c.alpha));
+            let stop = L::and(live, next.lt(t_min));
+            let add = L::and_not(live, stop);
+            let stopped = L::bits(stop);
+            if stopped != 0 {
+                L::select(stop, one, done).store(&mut acc.done[lp..]);
+                acc.active -= stopped.count_ones() as usize;
+            }
+            let wgt = L::select(add, c.alpha.mul(t), zero);
+            for (ch, v) in acc.color.iter_mut().zip(color) {
+                L::load(&ch[lp..]).add(wgt.mul(v)).store(&mut ch[lp..]);
+            }
+            L::load(&acc.depth[lp..])
+                .add(wgt.mul(depth))
+                .store(&mut acc.depth[lp..]);
+            L::select(add, next, t).store(&mut acc.trans[lp..]);
+            L::set_where(add, j as u32 + 1, &mut acc.end[lp..]);
+            if k > 0 {
+                let mut w = [0.0; LANES];
+                wgt.store(&mut w);
+                let mut bits = L::bits(add);
+                while bits != 0 {
+                    let l = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    L::axpy(&mut acc.feat[(lp + l) * k..][..k], w[l], f);
+                }
+            }
+        });
+        if acc.active == 0 {
+            break;
+        }
+    }
+}

@@ -1,0 +1,558 @@
+//! Eight pixels at a time: the operations the compositing kernels are written in, as a trait
+//! with two implementations. [`Portable`] works on plain arrays and runs everywhere (the
+//! fallback, and the reference the other is tested against); [`Avx2`] uses AVX2 registers and
+//! is chosen at run time where the CPU has them. Both perform the same IEEE operations in the
+//! same order (no fused multiply-add; the same polynomial `exp`; the same tree for horizontal
+//! sums), so a kernel gives identical bits on either.
+
+use crate::Real;
+
+/// Pixels per lane vector.
+pub(crate) const LANES: usize = 8;
+
+/// Which implementation of [`Lanes`] the rasterizer runs.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Simd {
+    /// AVX2 where the CPU has it, else portable.
+    #[default]
+    Auto,
+    /// The portable implementation, on any CPU.
+    Portable,
+    /// AVX2 (an error where the CPU lacks it, or in f64 builds).
+    Avx2,
+}
+
+impl Simd {
+    /// The implementation to run: `Portable` or `Avx2`.
+    pub fn resolve(self) -> Result<Simd, String> {
+        match self {
+            Simd::Auto if avx2_available() => Ok(Simd::Avx2),
+            Simd::Auto => Ok(Simd::Portable),
+            Simd::Avx2 if !avx2_available() => {
+                Err("this CPU (or an f64 build) has no AVX2 rasterizer path".into())
+            }
+            s => Ok(s),
+        }
+    }
+}
+
+/// Whether the AVX2 path can run here (never in f64 builds: it is an f32 kernel).
+pub fn avx2_available() -> bool {
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    {
+        std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(all(target_arch = "x86_64", not(feature = "f64"))))]
+    {
+        false
+    }
+}
+
+/// Eight lanes of `Real` and the operations on them.
+pub(crate) trait Lanes: Copy {
+    type Mask: Copy;
+    fn splat(v: Real) -> Self;
+    fn load(s: &[Real]) -> Self;
+    fn store(self, s: &mut [Real]);
+    fn add(self, o: Self) -> Self;
+    fn sub(self, o: Self) -> Self;
+    fn mul(self, o: Self) -> Self;
+    fn div(self, o: Self) -> Self;
+    fn min(self, o: Self) -> Self;
+    fn lt(self, o: Self) -> Self::Mask;
+    fn le(self, o: Self) -> Self::Mask;
+    fn gt(self, o: Self) -> Self::Mask;
+    /// Lanes where `end[l] > j`.
+    fn below(j: u32, end: &[u32]) -> Self::Mask;
+    fn and(a: Self::Mask, b: Self::Mask) -> Self::Mask;
+    /// `a` and not `b`.
+    fn and_not(a: Self::Mask, b: Self::Mask) -> Self::Mask;
+    /// Bit l set where lane l is set.
+    fn bits(m: Self::Mask) -> u32;
+    /// `a` where `m`, else `b`.
+    fn select(m: Self::Mask, a: Self, b: Self) -> Self;
+    /// `out[l] = v` where `m`.
+    fn set_where(m: Self::Mask, v: u32, out: &mut [u32]);
+    /// e^x, for x <= 0 (the falloff of a Gaussian).
+    fn exp(self) -> Self;
+    /// The sum of the lanes, as ((0 + 4) + (2 + 6)) + ((1 + 5) + (3 + 7)).
+    fn hsum(self) -> Real;
+    /// `out[i] += w * f[i]` over equally long slices.
+    fn axpy(out: &mut [Real], w: Real, f: &[Real]);
+    /// The dot product of two equally long slices: eight partial sums, then `hsum`, then the
+    /// tail in order.
+    fn dot(a: &[Real], b: &[Real]) -> Real;
+}
+
+/// The polynomial e^x both implementations evaluate (Cephes' expf: x = n ln2 + r, a degree-5
+/// polynomial in r, 2^n from the exponent bits), for the f32 engine. Lanes left over from a
+/// masked-out computation may hold anything: the clamp keeps them finite.
+#[cfg(not(feature = "f64"))]
+mod expf {
+    pub const LOG2E: f32 = std::f32::consts::LOG2_E;
+    /// ln 2 in two parts, so that n * LN2_HI is exact.
+    pub const LN2_HI: f32 = 0.693_359_4;
+    pub const LN2_LO: f32 = -2.121_944_4e-4;
+    /// Adding and subtracting 1.5 * 2^23 rounds to the nearest integer (ties to even).
+    pub const ROUND: f32 = 12_582_912.0;
+    pub const LOW: f32 = -87.0;
+    pub const HIGH: f32 = 0.0;
+    pub const P: [f32; 6] = [
+        1.987_569_1e-4,
+        1.398_199_9e-3,
+        8.333_452e-3,
+        4.166_579_6e-2,
+        1.666_666_5e-1,
+        0.5,
+    ];
+
+    #[inline(always)]
+    pub fn exp(x: f32) -> f32 {
+        // As maxps then minps, for the same bits on every input.
+        let x = if x > LOW { x } else { LOW };
+        let x = if x < HIGH { x } else { HIGH };
+        let n = (x * LOG2E + ROUND) - ROUND;
+        let r = (x - n * LN2_HI) - n * LN2_LO;
+        let mut p = P[0];
+        for c in &P[1..] {
+            p = p * r + c;
+        }
+        let y = (p * (r * r) + r) + 1.0;
+        y * f32::from_bits(((n as i32 + 127) as u32) << 23)
+    }
+}
+
+/// Plain arrays: the portable implementation.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Portable([Real; LANES]);
+
+impl Portable {
+    #[inline(always)]
+    fn map(self, f: impl Fn(Real) -> Real) -> Self {
+        Portable(std::array::from_fn(|l| f(self.0[l])))
+    }
+
+    #[inline(always)]
+    fn zip(self, o: Self, f: impl Fn(Real, Real) -> Real) -> Self {
+        Portable(std::array::from_fn(|l| f(self.0[l], o.0[l])))
+    }
+
+    #[inline(always)]
+    fn test(self, o: Self, f: impl Fn(Real, Real) -> bool) -> [bool; LANES] {
+        std::array::from_fn(|l| f(self.0[l], o.0[l]))
+    }
+}
+
+impl Lanes for Portable {
+    type Mask = [bool; LANES];
+
+    #[inline(always)]
+    fn splat(v: Real) -> Self {
+        Portable([v; LANES])
+    }
+    #[inline(always)]
+    fn load(s: &[Real]) -> Self {
+        Portable(s[..LANES].try_into().unwrap())
+    }
+    #[inline(always)]
+    fn store(self, s: &mut [Real]) {
+        s[..LANES].copy_from_slice(&self.0);
+    }
+    #[inline(always)]
+    fn add(self, o: Self) -> Self {
+        self.zip(o, |a, b| a + b)
+    }
+    #[inline(always)]
+    fn sub(self, o: Self) -> Self {
+        self.zip(o, |a, b| a - b)
+    }
+    #[inline(always)]
+    fn mul(self, o: Self) -> Self {
+        self.zip(o, |a, b| a * b)
+    }
+    #[inline(always)]
+    fn div(self, o: Self) -> Self {
+        self.zip(o, |a, b| a / b)
+    }
+    #[inline(always)]
+    fn min(self, o: Self) -> Self {
+        // As minps: the second operand when they compare false (equal, or NaN).
+        self.zip(o, |a, b| if a < b { a } else { b })
+    }
+    #[inline(always)]
+    fn lt(self, o: Self) -> [bool; LANES] {
+        self.test(o, |a, b| a < b)
+    }
+    #[inline(always)]
+    fn le(self, o: Self) -> [bool; LANES] {
+        self.test(o, |a, b| a <= b)
+    }
+    #[inline(always)]
+    fn gt(self, o: Self) -> [bool; LANES] {
+        self.test(o, |a, b| a > b)
+    }
+    #[inline(always)]
+    fn below(j: u32, end: &[u32]) -> [bool; LANES] {
+        std::array::from_fn(|l| end[l] > j)
+    }
+    #[inline(always)]
+    fn and(a: [bool; LANES], b: [bool; LANES]) -> [bool; LANES] {
+        std::array::from_fn(|l| a[l] & b[l])
+    }
+    #[inline(always)]
+    fn and_not(a: [bool; LANES], b: [bool; LANES]) -> [bool; LANES] {
+        std::array::from_fn(|l| a[l] & !b[l])
+    }
+    #[inline(always)]
+    fn bits(m: [bool; LANES]) -> u32 {
+        m.iter()
+            .enumerate()
+            .fold(0, |acc, (l, &b)| acc | (u32::from(b) << l))
+    }
+    #[inline(always)]
+    fn select(m: [bool; LANES], a: Self, b: Self) -> Self {
+        Portable(std::array::from_fn(|l| if m[l] { a.0[l] } else { b.0[l] }))
+    }
+    #[inline(always)]
+    fn set_where(m: [bool; LANES], v: u32, out: &mut [u32]) {
+        for (o, &set) in out[..LANES].iter_mut().zip(&m) {
+            if set {
+                *o = v;
+            }
+        }
+    }
+    #[inline(always)]
+    fn exp(self) -> Self {
+        #[cfg(not(feature = "f64"))]
+        return self.map(expf::exp);
+        #[cfg(feature = "f64")]
+        return self.map(Real::exp);
+    }
+    #[inline(always)]
+    fn hsum(self) -> Real {
+        let v = self.0;
+        ((v[0] + v[4]) + (v[2] + v[6])) + ((v[1] + v[5]) + (v[3] + v[7]))
+    }
+    #[inline(always)]
+    fn axpy(out: &mut [Real], w: Real, f: &[Real]) {
+        for (o, v) in out.iter_mut().zip(f) {
+            *o += w * v;
+        }
+    }
+    #[inline(always)]
+    fn dot(a: &[Real], b: &[Real]) -> Real {
+        let mut acc = Portable::splat(0.0);
+        let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+        let tail = ca
+            .remainder()
+            .iter()
+            .zip(cb.remainder())
+            .fold(0.0, |s, (x, y)| s + x * y);
+        for (x, y) in ca.zip(cb) {
+            acc = acc.add(Portable::load(x).mul(Portable::load(y)));
+        }
+        acc.hsum() + tail
+    }
+}
+
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+pub(crate) use avx2::Avx2;
+
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+mod avx2 {
+    //! Every function here is only ever inlined into code compiled with AVX2 enabled (the
+    //! `#[target_feature]` entry points of the kernels), which callers reach only after
+    //! checking the CPU ([`super::Simd::resolve`]).
+    use std::arch::x86_64::*;
+
+    use super::{expf, Lanes, LANES};
+
+    #[derive(Clone, Copy, Debug)]
+    pub(crate) struct Avx2(__m256);
+
+    impl Lanes for Avx2 {
+        type Mask = __m256;
+
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            unsafe { Avx2(_mm256_set1_ps(v)) }
+        }
+        #[inline(always)]
+        fn load(s: &[f32]) -> Self {
+            assert!(s.len() >= LANES);
+            unsafe { Avx2(_mm256_loadu_ps(s.as_ptr())) }
+        }
+        #[inline(always)]
+        fn store(self, s: &mut [f32]) {
+            assert!(s.len() >= LANES);
+            unsafe { _mm256_storeu_ps(s.as_mut_ptr(), self.0) }
+        }
+        #[inline(always)]
+        fn add(self, o: Self) -> Self {
+            unsafe { Avx2(_mm256_add_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn sub(self, o: Self) -> Self {
+            unsafe { Avx2(_mm256_sub_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn mul(self, o: Self) -> Self {
+            unsafe { Avx2(_mm256_mul_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn div(self, o: Self) -> Self {
+            unsafe { Avx2(_mm256_div_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn min(self, o: Self) -> Self {
+            unsafe { Avx2(_mm256_min_ps(self.0, o.0)) }
+        }
+        #[inline(always)]
+        fn lt(self, o: Self) -> __m256 {
+            unsafe { _mm256_cmp_ps::<_CMP_LT_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn le(self, o: Self) -> __m256 {
+            unsafe { _mm256_cmp_ps::<_CMP_LE_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn gt(self, o: Self) -> __m256 {
+            unsafe { _mm256_cmp_ps::<_CMP_GT_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn below(j: u32, end: &[u32]) -> __m256 {
+            assert!(end.len() >= LANES);
+            // Signed compare: tile lists are far shorter than 2^31.
+            unsafe {
+                let e = _mm256_loadu_si256(end.as_ptr() as *const __m256i);
+                _mm256_castsi256_ps(_mm256_cmpgt_epi32(e, _mm256_set1_epi32(j as i32)))
+            }
+        }
+        #[inline(always)]
+        fn and(a: __m256, b: __m256) -> __m256 {
+            unsafe { _mm256_and_ps(a, b) }
+        }
+        #[inline(always)]
+        fn and_not(a: __m256, b: __m256) -> __m256 {
+            unsafe { _mm256_andnot_ps(b, a) }
+        }
+        #[inline(always)]
+        fn bits(m: __m256) -> u32 {
+            unsafe { _mm256_movemask_ps(m) as u32 }
+        }
+        #[inline(always)]
+        fn select(m: __m256, a: Self, b: Self) -> Self {
+            unsafe { Avx2(_mm256_blendv_ps(b.0, a.0, m)) }
+        }
+        #[inline(always)]
+        fn set_where(m: __m256, v: u32, out: &mut [u32]) {
+            assert!(out.len() >= LANES);
+            unsafe {
+                let p = out.as_mut_ptr() as *mut __m256i;
+                let old = _mm256_castsi256_ps(_mm256_loadu_si256(p));
+                let new = _mm256_castsi256_ps(_mm256_set1_epi32(v as i32));
+                _mm256_storeu_si256(p, _mm256_castps_si256(_mm256_blendv_ps(old, new, m)));
+            }
+        }
+        #[inline(always)]
+        fn exp(self) -> Self {
+            unsafe {
+                let s = _mm256_set1_ps;
+                let x = _mm256_min_ps(_mm256_max_ps(self.0, s(expf::LOW)), s(expf::HIGH));
+                let n = _mm256_sub_ps(
+                    _mm256_add_ps(_mm256_mul_ps(x, s(expf::LOG2E)), s(expf::ROUND)),
+                    s(expf::ROUND),
+                );
+                let r = _mm256_sub_ps(
+                    _mm256_sub_ps(x, _mm256_mul_ps(n, s(expf::LN2_HI))),
+                    _mm256_mul_ps(n, s(expf::LN2_LO)),
+                );
+                let mut p = s(expf::P[0]);
+                for c in &expf::P[1..] {
+                    p = _mm256_add_ps(_mm256_mul_ps(p, r), s(*c));
+                }
+                let y = _mm256_add_ps(
+                    _mm256_add_ps(_mm256_mul_ps(p, _mm256_mul_ps(r, r)), r),
+                    s(1.0),
+                );
+                let e = _mm256_slli_epi32::<23>(_mm256_add_epi32(
+                    _mm256_cvtps_epi32(n),
+                    _mm256_set1_epi32(127),
+                ));
+                Avx2(_mm256_mul_ps(y, _mm256_castsi256_ps(e)))
+            }
+        }
+        #[inline(always)]
+        fn hsum(self) -> f32 {
+            unsafe {
+                let s = _mm_add_ps(
+                    _mm256_castps256_ps128(self.0),
+                    _mm256_extractf128_ps::<1>(self.0),
+                );
+                let s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+                _mm_cvtss_f32(_mm_add_ss(s, _mm_shuffle_ps::<1>(s, s)))
+            }
+        }
+        #[inline(always)]
+        fn axpy(out: &mut [f32], w: f32, f: &[f32]) {
+            let n = out.len().min(f.len());
+            let mut i = 0;
+            unsafe {
+                let wv = _mm256_set1_ps(w);
+                while i + LANES <= n {
+                    let o = out.as_mut_ptr().add(i);
+                    let v = _mm256_mul_ps(wv, _mm256_loadu_ps(f.as_ptr().add(i)));
+                    _mm256_storeu_ps(o, _mm256_add_ps(_mm256_loadu_ps(o), v));
+                    i += LANES;
+                }
+            }
+            for (o, v) in out[i..n].iter_mut().zip(&f[i..n]) {
+                *o += w * v;
+            }
+        }
+        #[inline(always)]
+        fn dot(a: &[f32], b: &[f32]) -> f32 {
+            let n = a.len().min(b.len());
+            let mut i = 0;
+            let mut acc = Avx2::splat(0.0);
+            unsafe {
+                while i + LANES <= n {
+                    let x = _mm256_loadu_ps(a.as_ptr().add(i));
+                    let y = _mm256_loadu_ps(b.as_ptr().add(i));
+                    acc = Avx2(_mm256_add_ps(acc.0, _mm256_mul_ps(x, y)));
+                    i += LANES;
+                }
+            }
+            let tail = a[i..n]
+                .iter()
+                .zip(&b[i..n])
+                .fold(0.0, |s, (x, y)| s + x * y);
+            acc.hsum() + tail
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// The polynomial exp against the library's, over the falloff's range.
+    #[test]
+    fn exp_is_accurate_where_gaussians_are_evaluated() {
+        let mut worst: f64 = 0.0;
+        for i in 0..=20_000 {
+            // The argument as the engine holds it, so that only exp's own error is measured.
+            let x = f64::from((-7.0 * i as f64 / 20_000.0) as Real);
+            let got = Portable::splat(x as Real).exp().0[0] as f64;
+            worst = worst.max((got - x.exp()).abs() / x.exp());
+        }
+        let ulps = if cfg!(feature = "f64") { 1e-15 } else { 2.5e-7 };
+        assert!(worst < ulps, "relative error {worst}");
+    }
+
+    /// Random lanes through every operation, the AVX2 implementation against the portable one,
+    /// bit for bit (where the CPU has AVX2).
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    #[test]
+    fn avx2_gives_the_portable_bits() {
+        if !avx2_available() {
+            eprintln!("no AVX2 here: only the portable implementation runs");
+            return;
+        }
+        // SAFETY: the CPU has AVX2 (checked above).
+        unsafe { compare_avx2() }
+    }
+
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    #[target_feature(enable = "avx2")]
+    unsafe fn compare_avx2() {
+        fn same(a: Avx2, b: Portable, what: &str) {
+            let mut x = [0.0; LANES];
+            a.store(&mut x);
+            assert_eq!(x.map(f32::to_bits), b.0.map(f32::to_bits), "{what}");
+        }
+        let mut rng = Rng::new(11);
+        for round in 0..2000 {
+            let mut draw = || -> [f32; LANES] {
+                std::array::from_fn(|_| match round % 4 {
+                    0 => rng.uniform(-8.0, 0.5) as f32,
+                    1 => rng.uniform(-1e3, 1e3) as f32,
+                    2 => (rng.uniform(-1.0, 1.0) * 1e-3) as f32,
+                    _ => rng.normal() as f32,
+                })
+            };
+            let (xa, xb) = (draw(), draw());
+            let (a, b) = (Avx2::load(&xa), Avx2::load(&xb));
+            let (pa, pb) = (Portable(xa), Portable(xb));
+            same(a.add(b), pa.add(pb), "add");
+            same(a.sub(b), pa.sub(pb), "sub");
+            same(a.mul(b), pa.mul(pb), "mul");
+            same(a.div(b), pa.div(pb), "div");
+            same(a.min(b), pa.min(pb), "min");
+            same(a.exp(), pa.exp(), "exp");
+            assert_eq!(a.hsum().to_bits(), pa.hsum().to_bits(), "hsum");
+            for (m, pm) in [
+                (a.lt(b), pa.lt(pb)),
+                (a.le(b), pa.le(pb)),
+                (a.gt(b), pa.gt(pb)),
+            ] {
+                assert_eq!(Avx2::bits(m), Portable::bits(pm), "compare");
+                same(
+                    Avx2::select(m, a, b),
+                    Portable::select(pm, pa, pb),
+                    "select",
+                );
+                let (m2, pm2) = (a.lt(Avx2::splat(0.0)), pa.lt(Portable::splat(0.0)));
+                assert_eq!(
+                    Avx2::bits(Avx2::and_not(m, m2)),
+                    Portable::bits(Portable::and_not(pm, pm2))
+                );
+                assert_eq!(
+                    Avx2::bits(Avx2::and(m, m2)),
+                    Portable::bits(Portable::and(pm, pm2))
+                );
+                let mut ua: [u32; LANES] = std::array::from_fn(|l| l as u32 * 3);
+                let mut up = ua;
+                Avx2::set_where(m, 77, &mut ua);
+                Portable::set_where(pm, 77, &mut up);
+                assert_eq!(ua, up, "set_where");
+                assert_eq!(
+                    Avx2::bits(Avx2::below(9, &ua)),
+                    Portable::bits(Portable::below(9, &up))
+                );
+            }
+            let n = round % 37;
+            let va: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
+            let vb: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
+            assert_eq!(
+                Avx2::dot(&va, &vb).to_bits(),
+                Portable::dot(&va, &vb).to_bits()
+            );
+            let (mut oa, mut op) = (vb.clone(), vb.clone());
+            Avx2::axpy(&mut oa, xa[0], &va);
+            Portable::axpy(&mut op, xa[0], &va);
+            assert_eq!(oa, op, "axpy");
+        }
+    }
+
+    /// The lane-split dot product against a plain running sum, in f64.
+    #[test]
+    fn dot_matches_a_plain_sum() {
+        let mut rng = Rng::new(3);
+        for n in [0, 1, 7, 8, 9, 63, 64, 65, 130] {
+            let a: Vec<Real> = (0..n).map(|_| rng.uniform(-1.0, 1.0) as Real).collect();
+            let b: Vec<Real> = (0..n).map(|_| rng.uniform(-1.0, 1.0) as Real).collect();
+            let plain: f64 = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| f64::from(*x) * f64::from(*y))
+                .sum();
+            let fast = f64::from(Portable::dot(&a, &b));
+            assert!(
+                (fast - plain).abs() < 1e-5 * (1.0 + n as f64),
+                "n={n}: {fast} vs {plain}"
+            );
+        }
+    }
+}
