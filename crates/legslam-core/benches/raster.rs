@@ -1,15 +1,24 @@
 //! Rasterizer benchmark on a realistic scene: one Gaussian per valid pixel of a real 640x480
 //! 7-Scenes depth frame (from `../shared/data`, beside the checkout), rendered from a view
 //! 5 cm and 2 degrees off the frame's own, at 640x480, for K = 0 and 64 on 1 and 2 threads.
-//! Without the data folder a synthetic wall of the same size stands in.
+//! Without the data folder a synthetic wall of the same size stands in. Each case runs the
+//! portable compositing and the AVX2 one (where the CPU has it) alternately; the ratio is the
+//! speed-up over the portable path.
 //!
-//! cargo bench -p legslam-core --bench raster
+//! cargo bench -p legslam-core --bench raster   (LEGSLAM_BENCH_SAMPLES, default 10)
+
+#[path = "common/mod.rs"]
+mod common;
 
 use std::path::PathBuf;
 use std::sync::LazyLock;
 
+use common::{compare, samples, variant};
 use legslam_core::camera::{Intrinsics, Pose};
-use legslam_core::raster::{backward, render, Camera, Gaussians, ImageGrads, RenderOptions};
+use legslam_core::raster::{
+    avx2_available, backward_into, render, render_into, BackwardScratch, Camera, Gaussians,
+    Gradients, ImageGrads, RenderOptions, Rendered, Simd,
+};
 use legslam_core::Real;
 
 const W: usize = 640;
@@ -121,56 +130,78 @@ fn camera() -> Camera {
     Camera::new(intr, &w2c).unwrap()
 }
 
-/// "K<features>/t<threads>"
-const CASES: [&str; 4] = ["K0/t1", "K0/t2", "K64/t1", "K64/t2"];
+fn options(simd: Simd) -> RenderOptions {
+    RenderOptions {
+        simd,
+        ..Default::default()
+    }
+}
 
-fn parse(case: &str) -> (usize, rayon::ThreadPool) {
-    let (k, t) = case.split_once('/').unwrap();
-    let k = k[1..].parse().unwrap();
-    let t = t[1..].parse().unwrap();
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(t)
-        .build()
-        .unwrap();
-    (k, pool)
+/// Forward, or forward and backward, of the scene with `k` features through `simd`, with the
+/// buffers a training loop keeps.
+fn pass(k: usize, simd: Simd, backward: bool) -> impl FnMut() {
+    let (g, cam) = (gaussians(k), camera());
+    let d_color = vec![0.1; W * H * 3];
+    let d_depth = vec![0.1; W * H];
+    let d_feat = vec![0.01; W * H * k];
+    let mut r = Rendered::default();
+    let mut scratch = BackwardScratch::default();
+    let mut grads = Gradients::default();
+    move || {
+        render_into(&g, &cam, &options(simd), &mut r).unwrap();
+        if backward {
+            let image_grads = ImageGrads {
+                color: Some(&d_color),
+                depth: Some(&d_depth),
+                alpha: None,
+                features: (k > 0).then_some(&d_feat[..]),
+            };
+            backward_into(&g, &cam, &r, &image_grads, &mut scratch, &mut grads).unwrap();
+        }
+    }
 }
 
 fn main() {
-    let (k, pool) = parse("K64/t2");
-    let r = pool.install(|| render(&gaussians(k), &camera(), &RenderOptions::default()).unwrap());
+    let r = render(&gaussians(64), &camera(), &RenderOptions::default()).unwrap();
     eprintln!(
         "640x480: {} tile-Gaussian pairs, {} of {} Gaussians on screen",
         r.num_pairs(),
         r.radii.iter().filter(|v| **v > 0.0).count(),
         r.radii.len()
     );
-    divan::main();
-}
-
-#[divan::bench(args = CASES, sample_count = 10, sample_size = 1)]
-fn forward(bencher: divan::Bencher, case: &str) {
-    let (k, pool) = parse(case);
-    let (g, cam) = (gaussians(k), camera());
-    bencher.bench(|| pool.install(|| render(&g, &cam, &RenderOptions::default()).unwrap()));
-}
-
-#[divan::bench(args = CASES, sample_count = 10, sample_size = 1)]
-fn forward_backward(bencher: divan::Bencher, case: &str) {
-    let (k, pool) = parse(case);
-    let (g, cam) = (gaussians(k), camera());
-    let d_color = vec![0.1; W * H * 3];
-    let d_depth = vec![0.1; W * H];
-    let d_feat = vec![0.01; W * H * k];
-    bencher.bench(|| {
-        pool.install(|| {
-            let r = render(&g, &cam, &RenderOptions::default()).unwrap();
-            let grads = ImageGrads {
-                color: Some(&d_color),
-                depth: Some(&d_depth),
-                alpha: None,
-                features: (k > 0).then_some(&d_feat[..]),
-            };
-            backward(&g, &cam, &r, &grads).unwrap()
-        })
-    });
+    let n = samples(10);
+    let simds: &[(&str, Simd)] = if avx2_available() {
+        &[("portable", Simd::Portable), ("avx2", Simd::Avx2)]
+    } else {
+        eprintln!("no AVX2 on this CPU: the portable path only");
+        &[("portable", Simd::Portable)]
+    };
+    for backward in [false, true] {
+        for k in [0, 64] {
+            for threads in [1, 2] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let what = if backward {
+                    "forward+backward"
+                } else {
+                    "forward"
+                };
+                let case = format!("{what} K{k} t{threads}");
+                if !common::selected(&case) {
+                    continue;
+                }
+                let mut variants: Vec<_> = simds
+                    .iter()
+                    .map(|&(name, simd)| {
+                        let mut run = pass(k, simd, backward);
+                        let pool = &pool;
+                        variant(name, move || pool.install(&mut run))
+                    })
+                    .collect();
+                compare(&case, n, &mut variants);
+            }
+        }
+    }
 }

@@ -1,0 +1,166 @@
+//! Mapper-iteration benchmark on a realistic map: every 12th frame of the 1000-frame 7-Scenes
+//! sequence in `../shared/data` (beside the checkout) becomes a keyframe at its ground-truth
+//! pose, with `SETUP_ITERS` mapping iterations after each (growth, densification and pruning
+//! as in a SLAM run), the SLAM's mapper options at 640x480 (training at 320x240, SH degree 3,
+//! K = 64 features on a smooth synthetic patch grid). Then single iterations (render + loss +
+//! backward + step) are timed, per phase, on 2 threads, with the portable compositing and the
+//! AVX2 one alternately.
+//!
+//! cargo bench -p legslam-core --bench mapper
+//! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
+//! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use legslam_core::camera::{Intrinsics, Pose};
+use legslam_core::map::{FeatureGrid, Mapper, MapperConfig};
+use legslam_core::raster::avx2_available;
+use legslam_core::rng::Rng;
+use legslam_core::Real;
+
+const W: usize = 640;
+const H: usize = 480;
+const F: f64 = 585.0;
+
+fn env(name: &str, default: usize) -> usize {
+    std::env::var(name)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
+
+fn data_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/7scenes_tsdf_fusion/data")
+}
+
+/// Colour in [0, 1], depth in metres (0 invalid), camera-to-world pose of frame `i`.
+fn frame(dir: &Path, i: usize) -> (Vec<Real>, Vec<Real>, Pose) {
+    let stem = dir.join(format!("frame-{i:06}"));
+    let rgb = image::open(stem.with_extension("color.jpg"))
+        .expect("7-Scenes colour")
+        .to_rgb8()
+        .into_raw()
+        .into_iter()
+        .map(|v| v as Real / 255.0)
+        .collect();
+    let depth = image::open(stem.with_extension("depth.png"))
+        .expect("7-Scenes depth")
+        .to_luma16()
+        .into_raw()
+        .into_iter()
+        .map(|v| match v {
+            0 | 65535 => 0.0,
+            v => v as Real / 1000.0,
+        })
+        .collect();
+    let text = std::fs::read_to_string(stem.with_extension("pose.txt")).expect("7-Scenes pose");
+    let v: Vec<f64> = text
+        .split_whitespace()
+        .map(|t| t.parse().unwrap())
+        .collect();
+    (rgb, depth, Pose::from_row_slice(&v[..16]))
+}
+
+/// A smooth unit-norm 16x16 grid of `k` channels: random values on a 4x4 grid, upsampled.
+fn feature_grid(rng: &mut Rng, k: usize) -> FeatureGrid {
+    let coarse: Vec<Real> = (0..16 * k).map(|_| rng.normal() as Real).collect();
+    let coarse = FeatureGrid::new(coarse, 4, 4, k).unwrap();
+    let mut data = coarse.upsample(16, 16);
+    for f in data.chunks_exact_mut(k) {
+        let n = f.iter().map(|v| v * v).sum::<Real>().sqrt().max(1e-6);
+        f.iter_mut().for_each(|v| *v /= n);
+    }
+    FeatureGrid::new(data, 16, 16, k).unwrap()
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn main() {
+    let dir = data_dir();
+    if !dir.is_dir() {
+        eprintln!("no 7-Scenes data at {}: nothing to measure", dir.display());
+        return;
+    }
+    let k = env("LEGSLAM_BENCH_K", 64);
+    let setup_iters = env("LEGSLAM_BENCH_SETUP_ITERS", 10);
+    let iters = env("LEGSLAM_BENCH_ITERS", 20);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
+    let mut config = MapperConfig {
+        levels: 4,
+        sh_degree: 3,
+        num_features: k,
+        ..Default::default()
+    };
+    config.grow.stride = 2;
+    let mut mapper = Mapper::new(config).unwrap();
+    let intr = Intrinsics::from_array([F, F, 320.0, 240.0], W, H);
+    let mut rng = Rng::new(1);
+    let t = Instant::now();
+    pool.install(|| {
+        for i in (0..1000).step_by(12) {
+            let (rgb, depth, pose) = frame(&dir, i);
+            let (id, _) = mapper.add_keyframe(rgb, depth, intr, pose).unwrap();
+            if k > 0 {
+                mapper.set_features(id, feature_grid(&mut rng, k)).unwrap();
+            }
+            mapper.train(setup_iters).unwrap();
+        }
+    });
+    eprintln!(
+        "map: {} Gaussians, {} keyframes, grown in {:.0} s",
+        mapper.map.len(),
+        mapper.keyframes.len(),
+        t.elapsed().as_secs_f64()
+    );
+    // Both paths give the same bits, so alternating them trains the map as either would.
+    let variants: &[(&str, bool)] = if avx2_available() {
+        &[("portable", false), ("avx2", true)]
+    } else {
+        &[("portable", false)]
+    };
+    let mut phases = vec![[(); 5].map(|_| Vec::new()); variants.len()];
+    pool.install(|| {
+        for _ in 0..iters {
+            for (&(_, simd), times) in variants.iter().zip(&mut phases) {
+                mapper.config.simd = simd;
+                let t = Instant::now();
+                let r = mapper.train(1).unwrap();
+                let total = t.elapsed().as_secs_f64();
+                for (p, v) in
+                    times
+                        .iter_mut()
+                        .zip([total, r.render_s, r.loss_s, r.backward_s, r.step_s])
+                {
+                    p.push(1e3 * v);
+                }
+            }
+        }
+    });
+    println!(
+        "mapper iteration, {} Gaussians, K = {k}, 2 threads, median of {iters} (ms; ratio to {}):",
+        mapper.map.len(),
+        variants[0].0
+    );
+    let medians: Vec<Vec<f64>> = phases
+        .iter_mut()
+        .map(|p| p.iter_mut().map(|v| median(v)).collect())
+        .collect();
+    for (i, name) in ["total", "render", "loss", "backward", "step"]
+        .iter()
+        .enumerate()
+    {
+        let cells: Vec<String> = variants
+            .iter()
+            .zip(&medians)
+            .map(|((v, _), m)| format!("{v} {:7.1} (x{:.2})", m[i], medians[0][i] / m[i]))
+            .collect();
+        println!("  {name:<9} {}", cells.join("   "));
+    }
+}
