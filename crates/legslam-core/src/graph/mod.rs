@@ -45,6 +45,10 @@ pub enum EdgeKind {
     Loop,
 }
 
+/// Inverse covariance of an edge's residual twist (translation first): symmetric positive
+/// definite.
+pub type Information = Matrix6<f64>;
+
 /// A relative-pose measurement between two nodes.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Edge {
@@ -52,9 +56,7 @@ pub struct Edge {
     pub to: usize,
     /// `T_ij`: the pose of node `to` in the frame of node `from`.
     pub measurement: Pose,
-    /// Inverse covariance of the residual twist (translation first), symmetric positive
-    /// definite.
-    pub information: Matrix6<f64>,
+    pub information: Information,
     pub kind: EdgeKind,
 }
 
@@ -110,7 +112,7 @@ impl PoseGraph {
 }
 
 /// Why an information matrix is unusable, if it is.
-fn check_information(m: &Matrix6<f64>) -> Result<(), String> {
+fn check_information(m: &Information) -> Result<(), String> {
     if m.iter().any(|v| !v.is_finite()) {
         return Err("must be finite".into());
     }
