@@ -32,9 +32,10 @@ use std::time::Instant;
 
 use nalgebra::{Matrix3, Matrix6};
 
-pub use residual::{cauchy, edge_residual};
+pub use residual::edge_residual;
 
 use crate::camera::{se3, Pose};
+use residual::cauchy;
 use solve::{cost, edge_chi2, Problem};
 
 /// What an edge comes from: loop edges get the robust kernel and may be rejected; odometry

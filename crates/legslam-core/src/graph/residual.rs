@@ -26,7 +26,7 @@ pub(crate) fn jacobian_to(r: &Vector6<f64>, tj: &Pose) -> Matrix6<f64> {
 }
 
 /// The residual of [`edge_residual`] alone.
-pub fn residual(ti: &Pose, tj: &Pose, z_inv: &Pose) -> Vector6<f64> {
+pub(crate) fn residual(ti: &Pose, tj: &Pose, z_inv: &Pose) -> Vector6<f64> {
     se3::log(&(z_inv * se3::inverse(ti) * tj))
 }
 
@@ -34,7 +34,7 @@ pub fn residual(ti: &Pose, tj: &Pose, z_inv: &Pose) -> Vector6<f64> {
 /// `(rho, w)` with `rho = c^2 ln(1 + chi2 / c^2)` the cost in place of `chi2`, and
 /// `w = rho' = 1 / (1 + chi2 / c^2)` the weight of the edge's information in the normal
 /// equations. `c = 0` means no kernel: `(chi2, 1)`.
-pub fn cauchy(chi2: f64, c: f64) -> (f64, f64) {
+pub(crate) fn cauchy(chi2: f64, c: f64) -> (f64, f64) {
     if c == 0.0 {
         return (chi2, 1.0);
     }
