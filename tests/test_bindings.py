@@ -60,6 +60,9 @@ def _entries():
         "TrackerCore.track": lambda: tracker.track(reference, rgb, depth, K, np.eye(4)),
         "OdometryCore": lambda: _core.OdometryCore({}, np.eye(4), True),
         "OdometryCore.step": lambda: odometry.step(rgb, depth, K),
+        "pose_graph_options": lambda: _core.pose_graph_options({"robust_scale": 2.0}),
+        "optimize_pose_graph": lambda: _core.optimize_pose_graph(
+            np.stack([np.eye(4), np.eye(4)]), [(0, 1, np.eye(4), np.eye(6), "odometry")]),
     }
 
 

@@ -4,11 +4,13 @@
 //! - [`camera`]: pinhole intrinsics, the pose type and its SE(3) algebra, depth registration.
 //! - [`map`]: the Gaussian map and how it grows, is pruned, densified and trained.
 //! - [`track`]: dense RGB-D pose tracking.
+//! - [`graph`]: pose-graph optimisation of keyframe poses (loop closure).
 //! - [`loss`]: the mapper's image losses (L1, SSIM, depth, feature cosine) with gradients.
 //! - [`optim`]: Adam over the Gaussians' parameter groups, following rows as they come and go.
 //! - [`options`]: every configuration's options by name, for files and bindings.
 
 pub mod camera;
+pub mod graph;
 pub mod loss;
 pub mod map;
 pub mod optim;

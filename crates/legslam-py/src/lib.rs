@@ -6,6 +6,7 @@ use pyo3::prelude::*;
 
 mod camera;
 mod convert;
+mod graph;
 mod map;
 mod pool;
 mod raster;
@@ -15,6 +16,7 @@ mod track;
 fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     convert::register(m)?;
     camera::register(m)?;
+    graph::register(m)?;
     map::register(m)?;
     raster::register(m)?;
     track::register(m)?;

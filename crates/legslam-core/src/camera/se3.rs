@@ -6,8 +6,12 @@
 //! `[[w]x, v; 0, 0]` and `exp(xi)` the rigid transform it generates. The tracker perturbs
 //! poses on the **left**: `T <- exp(delta) * T`, so a point `X` moves to `X + v + w x X` to
 //! first order, and `d(exp(delta) X)/d(delta) = [I | -[X]x]` at `delta = 0`.
+//!
+//! The pose graph's Jacobians need two more pieces, in the same order: the [`adjoint`] (moves a
+//! twist from one frame to another) and the inverse right Jacobian
+//! ([`right_jacobian_inverse`]: how `log` changes under a small twist applied on the right).
 
-use nalgebra::{Matrix3, Matrix4, Rotation3, Vector3, Vector6};
+use nalgebra::{Matrix3, Matrix4, Matrix6, Rotation3, Vector3, Vector6};
 
 /// Skew-symmetric matrix `[w]x` with `[w]x a = w x a`.
 pub fn hat3(w: &Vector3<f64>) -> Matrix3<f64> {
@@ -26,6 +30,75 @@ fn left_jacobian(w: &Vector3<f64>) -> Matrix3<f64> {
     };
     let k = hat3(w);
     Matrix3::identity() + k * b + k * k * c
+}
+
+/// Inverse of the SO(3) left Jacobian, in closed form (finite up to an angle of 2 pi).
+fn left_jacobian_inverse(w: &Vector3<f64>) -> Matrix3<f64> {
+    let th2 = w.norm_squared();
+    let th = th2.sqrt();
+    // 1/t^2 - (1 + cos t) / (2 t sin t), with (1 + cos t) / sin t = cot(t/2).
+    let c = if th < 1e-4 {
+        1.0 / 12.0 + th2 / 720.0
+    } else {
+        1.0 / th2 - 0.5 / (th * (0.5 * th).tan())
+    };
+    let k = hat3(w);
+    Matrix3::identity() - k * 0.5 + k * k * c
+}
+
+/// The block `Q(rho, phi)` coupling translation and rotation in the SE(3) left Jacobian
+/// `[[J(phi), Q], [0, J(phi)]]` (Barfoot, *State Estimation for Robotics*, eq. 7.86).
+fn left_jacobian_q(rho: &Vector3<f64>, phi: &Vector3<f64>) -> Matrix3<f64> {
+    let th2 = phi.norm_squared();
+    let th = th2.sqrt();
+    let (a, b, c) = if th < 0.1 {
+        // Taylor series; the closed forms lose digits to cancellation at small angles.
+        let th4 = th2 * th2;
+        (
+            1.0 / 6.0 - th2 / 120.0 + th4 / 5040.0,
+            1.0 / 24.0 - th2 / 720.0 + th4 / 40320.0,
+            1.0 / 120.0 - th2 / 2520.0 + th4 / 120960.0,
+        )
+    } else {
+        let (s, co) = th.sin_cos();
+        (
+            (th - s) / (th2 * th),
+            (th2 + 2.0 * co - 2.0) / (2.0 * th2 * th2),
+            (2.0 * th - 3.0 * s + th * co) / (2.0 * th2 * th2 * th),
+        )
+    };
+    let (r, p) = (hat3(rho), hat3(phi));
+    let (pr, rp, prp) = (p * r, r * p, p * r * p);
+    r * 0.5 + (pr + rp + prp) * a + (p * pr + rp * p - prp * 3.0) * b + (prp * p + p * prp) * c
+}
+
+/// The inverse right Jacobian of SE(3) at `xi`: `log(exp(xi) exp(d)) = xi +
+/// right_jacobian_inverse(xi) d + O(|d|^2)`. Exact (not the `I + ad(xi)/2` approximation), so
+/// Gauss-Newton keeps its quadratic convergence on large residuals.
+pub fn right_jacobian_inverse(xi: &Vector6<f64>) -> Matrix6<f64> {
+    // J_r(xi) = J_l(-xi), and [[J, Q], [0, J]]^-1 = [[J^-1, -J^-1 Q J^-1], [0, J^-1]].
+    let rho = -Vector3::new(xi[0], xi[1], xi[2]);
+    let phi = -Vector3::new(xi[3], xi[4], xi[5]);
+    let j_inv = left_jacobian_inverse(&phi);
+    let q = left_jacobian_q(&rho, &phi);
+    let mut out = Matrix6::zeros();
+    out.fixed_view_mut::<3, 3>(0, 0).copy_from(&j_inv);
+    out.fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&(-(j_inv * q * j_inv)));
+    out.fixed_view_mut::<3, 3>(3, 3).copy_from(&j_inv);
+    out
+}
+
+/// The adjoint of `t`, `[[R, [p]x R], [0, R]]` for rotation `R` and translation `p`: it moves a
+/// twist across `t`, `t exp(xi) t^-1 = exp(adjoint(t) xi)`.
+pub fn adjoint(t: &Matrix4<f64>) -> Matrix6<f64> {
+    let r = rotation(t);
+    let mut a = Matrix6::zeros();
+    a.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+    a.fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&(hat3(&translation(t)) * r));
+    a.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
+    a
 }
 
 /// `exp(xi)` as a 4x4 homogeneous transform (twist convention in the module docs).
@@ -212,6 +285,43 @@ mod tests {
                 ana = e.cross(&x);
             }
             assert!((num - ana).norm() < 1e-8, "column {k}: {num:?} vs {ana:?}");
+        }
+    }
+
+    #[test]
+    fn adjoint_moves_a_twist_across_a_transform() {
+        let t = exp(&Vector6::new(1.5, -0.4, 2.0, 0.3, -1.1, 0.7));
+        let xi = Vector6::new(0.02, -0.05, 0.01, 0.03, 0.01, -0.04);
+        let lhs = t * exp(&xi) * inverse(&t);
+        assert!((lhs - exp(&(adjoint(&t) * xi))).norm() < 1e-12);
+    }
+
+    #[test]
+    fn right_jacobian_inverse_matches_central_differences() {
+        // Small angles (the series branches), moderate and large ones (the closed forms).
+        let cases = [
+            Vector6::new(0.3, -0.2, 0.5, 1e-7, -2e-7, 1e-7),
+            Vector6::new(0.3, -0.2, 0.5, 0.02, -0.05, 0.03),
+            Vector6::new(1.0, 2.0, -0.5, 0.4, -0.3, 0.6),
+            Vector6::new(-0.7, 0.1, 1.3, 1.2, 1.9, -0.8),
+        ];
+        let h = 1e-6;
+        for xi in cases {
+            let t = exp(&xi);
+            let ana = right_jacobian_inverse(&xi);
+            for k in 0..6 {
+                let mut d = Vector6::zeros();
+                d[k] = h;
+                let plus = log(&(t * exp(&d)));
+                let minus = log(&(t * exp(&(-d))));
+                let num = (plus - minus) / (2.0 * h);
+                let err = (num - ana.column(k)).norm();
+                assert!(
+                    err < 1e-7,
+                    "xi {xi:?} column {k}: {num:?} vs {:?}",
+                    ana.column(k)
+                );
+            }
         }
     }
 }
