@@ -7,23 +7,20 @@ import shutil
 import sys
 from pathlib import Path
 
-from ..datasets import DatasetError, open as open_dataset
 from ..eval import every_key
 from ..pipeline import run as run_pipeline
 from ..run_folder import RUN_FILES, write_json
 from ..slam import SLAMConfig
 from ..viewer import RerunViewer, ViewerError
-from .common import UserError, at_least, output_dir
+from .common import UserError, add_sequence_options, at_least, open_sequence, output_dir
 from .progress import Progress
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="sequence folder (TUM, Replica, ScanNet, 7-Scenes, plain folder)")
+    p.add_argument("path", help="a sequence folder (TUM, Replica, ScanNet, 7-Scenes, plain folder), a ROS1 "
+                                ".bag or ROS2 bag folder, a Stray Scanner export, a Record3D .r3d")
     add_run_options(p)
-    p.add_argument("--format", default="auto", help="dataset format (default: auto-detect)")
-    p.add_argument("--stride", type=int, default=1, help="use every N-th frame")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
-    p.add_argument("--downscale", type=int, default=1, help="shrink images by this integer factor")
+    add_sequence_options(p)
 
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
@@ -137,13 +134,6 @@ def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
 
 
 def run(args) -> int:
-    at_least("--stride", args.stride)
-    at_least("--max-frames", args.max_frames)
-    at_least("--downscale", args.downscale)
     config = run_config(args)
-    try:
-        seq = open_dataset(args.path, format=args.format, stride=args.stride,
-                           max_frames=args.max_frames, downscale=args.downscale)
-    except (DatasetError, FileNotFoundError) as e:
-        raise UserError(str(e)) from e
+    seq = open_sequence(args)
     return run_sequence(seq, Path(args.path).resolve().name, args, config)
