@@ -130,6 +130,7 @@ def test_topics_are_picked_and_else_listed(tmp_path, synth, capsys):
     stamps, poses = read_tum(out / "trajectory.txt")
     np.testing.assert_allclose(stamps, [s.t for s in shots], atol=1e-4)  # the bag's own times
     assert "no ATE: the sequence has no ground-truth poses" in capsys.readouterr().out
+    assert main(["eval", str(out)]) == 0  # the run's topic, recorded in camera.json
     with pytest.raises(DatasetError, match="takes no option rgb_topic"):
         D.open(tmp_path / "run", format="folder", rgb_topic="/x")
 

@@ -195,9 +195,15 @@ class Sequence:
 
     @property
     def selection(self) -> dict:
-        """The options that select these frames from the folder, as `open` takes them."""
+        """The options that select these frames from the folder, as `open` takes them: the
+        range, stride and downscale, the format's own options and given intrinsics."""
         r = self._indices
-        return {"frames": [r.start, r.stop], "stride": r.step, "downscale": self._downscale}
+        out = {"frames": [r.start, r.stop], "stride": r.step, "downscale": self._downscale}
+        out.update({name: getattr(self, name) for name in self.options})
+        if self._K_override is not None:
+            K = self._K_override
+            out["intrinsics"] = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+        return out
 
     @property
     def intrinsics(self) -> tuple:
