@@ -116,7 +116,7 @@ class BagWriter:
         return self.T("sensor_msgs/msg/CompressedImage")(header=self.header(t, frame), format=fmt,
                                                          data=np.frombuffer(data, dtype=np.uint8))
 
-    def camera_info(self, t: float, frame: str, K: np.ndarray, size: tuple, dist=(0.0,) * 5):
+    def camera_info(self, t: float, frame: str, K: np.ndarray, size: tuple, dist=(0.0,) * 5, model="plumb_bob"):
         f = (lambda n: n.upper()) if self.ros1 else (lambda n: n)
         P = np.zeros((3, 4))
         P[:3, :3] = K
@@ -124,7 +124,7 @@ class BagWriter:
         fields = {f("d"): np.asarray(dist, dtype=np.float64), f("k"): K.reshape(-1).astype(np.float64),
                   f("r"): np.eye(3).reshape(-1), f("p"): P.reshape(-1)}
         return self.T("sensor_msgs/msg/CameraInfo")(
-            header=self.header(t, frame), height=size[1], width=size[0], distortion_model="plumb_bob",
+            header=self.header(t, frame), height=size[1], width=size[0], distortion_model=model,
             binning_x=0, binning_y=0, roi=roi, **fields)
 
     def transform(self, T: np.ndarray):
@@ -172,7 +172,7 @@ def depth_message(w: BagWriter, t: float, frame: str, depth: np.ndarray, kind: s
 
 
 def write_bag(path: Path, shots, K, *, storage: str = "ros1", colour: str = "rgb8", depth: Optional[str] = "16UC1",
-              topics=TUM_TOPICS, info: bool = True, dist=(0.0,) * 5, depth_camera=None, extra=(),
+              topics=TUM_TOPICS, info: bool = True, dist=(0.0,) * 5, model="plumb_bob", depth_camera=None, extra=(),
               skip_depth=()) -> Path:
     """A bag of the shots on `topics` (colour, depth), with CameraInfo beside each (unless
     not `info`) and a compressed topic name for compressed images. depth=None: no depth topic.
@@ -198,7 +198,7 @@ def write_bag(path: Path, shots, K, *, storage: str = "ros1", colour: str = "rgb
             h, wd = s.rgb.shape[:2]
             w.write(rgb_topic, colour_message(w, s.t, "color_optical", s.rgb, colour), s.t + LOG_DELAY)
             if info:
-                w.write(ns(rgb_topic) + "/camera_info", w.camera_info(s.t, "color_optical", K, (wd, h), dist),
+                w.write(ns(rgb_topic) + "/camera_info", w.camera_info(s.t, "color_optical", K, (wd, h), dist, model),
                         s.t + LOG_DELAY)
             for topic, kind in extra:
                 w.write(topic, colour_message(w, s.t, "other", s.rgb, kind), s.t + LOG_DELAY)

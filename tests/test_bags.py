@@ -102,6 +102,11 @@ def test_lens_distortion_in_camera_info_is_removed(tmp_path, synth):
     diff = np.abs(got.astype(int) - want)  # cv2.undistort interpolates in fixed point
     assert diff.max() <= 4 and diff.mean() < 1
     assert np.abs(got.astype(int) - shots[0].rgb).mean() > 2  # something was done
+    fisheye = write_bag(tmp_path / "fisheye.bag", shots, K, dist=dist[:4], model="equidistant")
+    with pytest.raises(DatasetError, match="cannot undistort the 'equidistant' distortion model"):
+        D.open(fisheye)
+    seq = D.open(fisheye, intrinsics=(K[0, 0], K[1, 1], K[0, 2], K[1, 2]))  # as they are
+    np.testing.assert_array_equal(seq[0].rgb, shots[0].rgb)
 
 
 def test_topics_are_picked_and_else_listed(tmp_path, synth, capsys):
@@ -182,3 +187,15 @@ def test_reading_a_frame_reads_only_its_messages(tmp_path, synth, monkeypatch):
     monkeypatch.setattr(seq._reader, "messages", lambda **kw: calls.append(kw) or real(**kw))
     seq[3]
     assert len(calls) == 2 and all(c["stop"] - c["start"] == 1 for c in calls)  # one message each
+
+
+def test_image_rows_drop_their_padding_and_a_short_message_is_an_error():
+    from types import SimpleNamespace
+
+    from legslam.datasets.bag import _pixels
+
+    padded = SimpleNamespace(height=2, width=2, step=8, encoding="rgb8", data=np.arange(16, dtype=np.uint8))
+    np.testing.assert_array_equal(_pixels(padded, np.uint8, 3, "x")[1, 1], [11, 12, 13])  # row 1 starts at byte 8
+    short = SimpleNamespace(height=4, width=5, step=15, encoding="rgb8", data=np.zeros(50, np.uint8))
+    with pytest.raises(DatasetError, match="m 3: 50 bytes of data for a 5x4 rgb8 image with 15 bytes a row"):
+        _pixels(short, np.uint8, 3, "m 3")

@@ -201,3 +201,11 @@ def test_no_sdk_or_no_camera_is_said(tmp_path, shots, monkeypatch, capsys):
         cam = RealSenseCamera(sdk=FakeSDK(shots, [[0]], colour_format="yuyv"))
         cam.start()
         next(cam.frames())
+
+
+def test_a_camera_that_stops_delivering_stops_the_run_with_its_work_kept(tmp_path, shots, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "pyrealsense2", FakeSDK(shots, [[0], [1], [2], [3]]))  # then nothing
+    out = tmp_path / "unplugged"
+    assert main(["run", "realsense", "--out", str(out), *FAST]) == 2
+    assert "no frames from the RealSense camera for 5 s (disconnected?)" in capsys.readouterr().err
+    assert len(read_tum(out / "trajectory.txt")[1]) == 4 and (out / "map.ply").is_file()

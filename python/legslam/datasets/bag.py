@@ -141,7 +141,7 @@ class BagSequence(Sequence):
             from rosbags.typesys import Stores, get_typestore
         except ImportError:
             raise DatasetError(f"{p}: reading ROS bags needs rosbags: pip install 'legslam[bags]'") from None
-        with _reading(f"bag {p}"):
+        with _reading(f"bag {p} (cut short, or not a bag?)"):
             # ROS2 bags of older recorders carry no message definitions: the standard ones.
             self._reader = AnyReader([p], default_typestore=get_typestore(Stores.LATEST))
             self._reader.open()
@@ -236,18 +236,18 @@ class BagSequence(Sequence):
 
     def _setup_cameras(self, size: tuple, depth_size: tuple) -> None:
         """The colour K, and how depth gets to the colour camera: undistorted, registered."""
-        colour, depth = self._camera(self._rgb), self._camera(self._depth)
         self._undistort_rgb = self._undistort_depth = None
         self._register = None  # (K_depth, colour_from_depth) when depth is on another camera
+        colour = depth = None
         if self._K_override is not None:  # the images as they are
-            colour_K, depth = self._K_override, None
-        elif colour is None:
+            colour_K = self._K_override
+        elif (colour := self._camera(self._rgb)) is None:
             raise DatasetNotFoundError(f"{self.path}: no sensor_msgs/CameraInfo for {self._rgb.name} (looked for "
                                        f"{' and '.join(_info_topics(self._rgb.name))}); give the intrinsics: "
                                        "--intrinsics fx,fy,cx,cy on the command line, intrinsics=(fx, fy, cx, cy) "
                                        "in Python")
         else:
-            colour_K = colour.K
+            colour_K, depth = colour.K, self._camera(self._depth)
             self._undistort_rgb = undistortion(colour.K, colour.dist, size)
         self._colour_K = colour_K
         if depth is not None:
@@ -265,8 +265,8 @@ class BagSequence(Sequence):
                 return
         if tuple(depth_size) != tuple(size):
             raise DatasetError(f"{self.path}: depth images ({self._depth.name}) are {depth_size[0]}x{depth_size[1]} "
-                               f"and colour images ({self._rgb.name}) {size[0]}x{size[1]}, and no CameraInfo of "
-                               "the depth camera says how to register one to the other")
+                               f"and colour images ({self._rgb.name}) {size[0]}x{size[1]}, and no CameraInfo of a "
+                               "depth camera of that size says how to register one to the other")
         self._undistort_depth = self._undistort_rgb  # registered depth: the colour camera's lens
 
     def _colour_from_depth(self, colour: _Camera, depth: _Camera) -> Optional[np.ndarray]:
