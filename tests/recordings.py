@@ -218,6 +218,29 @@ def write_bag(path: Path, shots, K, *, storage: str = "ros1", colour: str = "rgb
     return path
 
 
+def write_realsense_bag(path: Path, shots, K, K_depth, depth_images, colour_from_depth, depth_units: float) -> Path:
+    """A ROS1 bag in the RealSense SDK's layout (its ros_writer): /device_0/sensor_N/<Stream>_0/
+    image/data and info/camera_info, 16-bit depth (mono16) in the "Depth Units" option's metres,
+    and each stream's extrinsics from the reference stream (here depth) in tf/0; an infrared
+    stream beside them."""
+    s0 = "/device_0/sensor_0"
+    colour, depth, infrared = "/device_0/sensor_1/Color_0", f"{s0}/Depth_0", f"{s0}/Infrared_1"
+    with BagWriter(Path(path), "ros1") as w:
+        t0 = shots[0].t
+        w.write(f"{s0}/option/Depth Units/value", w.T("std_msgs/msg/Float32")(data=depth_units), t0)
+        w.write(f"{depth}/tf/0", w.transform(np.eye(4)), t0)
+        w.write(f"{colour}/tf/0", w.transform(colour_from_depth), t0)
+        for s, d in zip(shots, depth_images):
+            h, wd = s.rgb.shape[:2]
+            w.write(f"{colour}/image/data", colour_message(w, s.t, "0", s.rgb, "rgb8"), s.t)
+            w.write(f"{colour}/info/camera_info", w.camera_info(s.t, "0", K, (wd, h)), s.t)
+            w.write(f"{infrared}/image/data", colour_message(w, s.t, "0", s.rgb, "mono8"), s.t)
+            units = np.round(d / depth_units).astype(np.uint16)
+            w.write(f"{depth}/image/data", w.image(s.t + DEPTH_DELAY, "0", units, "mono16"), s.t + DEPTH_DELAY)
+            w.write(f"{depth}/info/camera_info", w.camera_info(s.t, "0", K_depth, d.shape[::-1]), s.t + DEPTH_DELAY)
+    return Path(path)
+
+
 # --- phones -------------------------------------------------------------------------------
 
 ARKIT_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y up and z backward in ARKit

@@ -179,6 +179,25 @@ def test_depth_of_another_camera_is_registered_with_tf_static(tmp_path):
         D.open(r)
 
 
+def test_a_realsense_sdk_recording_is_read_with_its_depth_units_and_extrinsics(tmp_path):
+    from legslam.datasets.synthetic import intrinsics
+    from recordings import write_realsense_bag
+
+    w, h = 96, 72
+    K_c, K_d = intrinsics(w, h), np.array([[90.0, 0, 59.5], [0, 90.0, 44.5], [0, 0, 1]])
+    shots, _ = synthetic_shots(2, w, h, K=K_c)
+    depth_pose = [look_at(s.pose, (-0.015, 0.0, 0.0)) for s in shots]  # a D435's depth camera, 1.5 cm aside
+    seen, _ = synthetic_shots(2, 120, 90, K=K_d, poses=depth_pose)
+    colour_from_depth = np.linalg.inv(shots[0].pose) @ depth_pose[0]
+    seq = D.open(write_realsense_bag(tmp_path / "d435.bag", shots, K_c, K_d, [s.depth for s in seen],
+                                     colour_from_depth, depth_units=0.0005))  # 0.5 mm: up to 32 m
+    assert seq.rgb_topic == "/device_0/sensor_1/Color_0/image/data"  # not the infrared beside it
+    assert seq.depth_scale == pytest.approx(2000)
+    got, want = seq[1].depth, shots[1].depth
+    both = (got > 0) & (want > 0)
+    assert both.mean() > 0.6 and np.median(np.abs(got[both] - want[both])) < 0.01
+
+
 def test_reading_a_frame_reads_only_its_messages(tmp_path, synth, monkeypatch):
     shots, K = synth
     seq = D.open(write_bag(tmp_path / "lazy.bag", shots, K))

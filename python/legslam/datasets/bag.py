@@ -272,12 +272,12 @@ class BagSequence(Sequence):
     def _colour_from_depth(self, colour: _Camera, depth: _Camera) -> Optional[np.ndarray]:
         """The 4x4 taking depth-camera points to colour-camera points (metres), None when the bag
         does not say."""
-        if depth.frame == colour.frame and depth.frame:
-            return np.eye(4)
         rs = self._realsense_extrinsics(colour.topic), self._realsense_extrinsics(depth.topic)
         if rs[0] is not None and rs[1] is not None and rs[0][0] == rs[1][0]:
             # Each stream's extrinsics are from a common reference stream to it.
             return rs[0][1] @ np.linalg.inv(rs[1][1])
+        if depth.frame == colour.frame and depth.frame:
+            return np.eye(4)
         return _chain(self._static_transforms(), colour.frame, depth.frame)
 
     def _static_transforms(self) -> dict:
