@@ -163,10 +163,9 @@ class BagSequence(Sequence):
         first_rgb, first_depth = self._message(self._rgb, pairs[0][0]), self._message(self._depth, pairs[0][1])
         size = (int(first_rgb.width), int(first_rgb.height)) if self._rgb.msgtype == IMAGE else \
             decode_rgb(first_rgb.data, f"{p} {self.rgb_topic}").shape[1::-1]
-        depth_size = self._decode_depth(first_depth, "first message").shape[::-1]
-        self._depth_scale = self._realsense_depth_scale() or MILLIMETRES
+        depth_size = self._decode_depth(first_depth, f"{p} {self.depth_topic} message {pairs[0][1]}").shape[::-1]
         self._setup_cameras(size, depth_size)
-        self._setup(self._colour_K, self._depth_scale, size)
+        self._setup(self._colour_K, self._realsense_depth_scale() or MILLIMETRES, size)
 
     # --- topics and their cameras --------------------------------------------------------
     def _image_topics(self) -> dict:
