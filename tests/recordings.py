@@ -241,6 +241,58 @@ def write_realsense_bag(path: Path, shots, K, K_depth, depth_images, colour_from
     return Path(path)
 
 
+def record_realsense(path: Path, shots, K, K_depth, depth_images, colour_from_depth, depth_units: float) -> Path:
+    """A recording made by the RealSense SDK itself (pyrealsense2's recorder on a software
+    device with a depth and a colour sensor): colour rgb8, depth z16 in depth_units, the
+    depth-to-colour extrinsics registered as a device does. SDK 2.5x writes a .db3."""
+    import time
+
+    import pyrealsense2 as rs
+
+    device = rs.software_device()
+
+    def stream(sensor, kind, fmt, bpp, uid, K, size):
+        intr = rs.intrinsics()
+        intr.width, intr.height = size
+        intr.fx, intr.fy, intr.ppx, intr.ppy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        intr.model, intr.coeffs = rs.distortion.none, [0.0] * 5
+        v = rs.video_stream()
+        v.type, v.index, v.uid, v.width, v.height = kind, 0, uid, size[0], size[1]
+        v.fps, v.bpp, v.fmt, v.intrinsics = 30, bpp, fmt, intr
+        return sensor.add_video_stream(v)
+
+    depth_sensor, colour_sensor = device.add_sensor("Depth"), device.add_sensor("Color")
+    depth = stream(depth_sensor, rs.stream.depth, rs.format.z16, 2, 0, K_depth, depth_images[0].shape[::-1])
+    colour = stream(colour_sensor, rs.stream.color, rs.format.rgb8, 3, 1, K, shots[0].rgb.shape[1::-1])
+    depth_sensor.add_read_only_option(rs.option.depth_units, depth_units)
+    extrinsics = rs.extrinsics()
+    extrinsics.rotation = colour_from_depth[:3, :3].T.reshape(-1).tolist()  # column-major
+    extrinsics.translation = colour_from_depth[:3, 3].tolist()
+    depth.register_extrinsics_to(colour, extrinsics)
+    recorder = rs.recorder(str(path), device)
+    depth_sensor.open(depth)
+    colour_sensor.open(colour)
+    queue = rs.frame_queue(100)
+    depth_sensor.start(queue)
+    colour_sensor.start(queue)
+    kept = []  # the SDK reads the pixels after on_video_frame returns
+    for k, (s, d) in enumerate(zip(shots, depth_images)):
+        units = np.round(d / depth_units).astype(np.uint16)
+        for sensor, profile, bpp, img in ((depth_sensor, depth, 2, units), (colour_sensor, colour, 3, s.rgb)):
+            f = rs.software_video_frame()
+            kept.append(np.ascontiguousarray(img))
+            f.pixels, f.stride, f.bpp = kept[-1], img.shape[1] * bpp, bpp
+            f.timestamp, f.domain, f.frame_number = 1e3 * s.t, rs.timestamp_domain.hardware_clock, k
+            f.profile = profile.as_video_stream_profile()
+            sensor.on_video_frame(f)
+        time.sleep(0.02)
+    for sensor in (depth_sensor, colour_sensor):
+        sensor.stop()
+        sensor.close()
+    del recorder  # writes the file
+    return Path(path)
+
+
 # --- phones -------------------------------------------------------------------------------
 
 ARKIT_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # camera axes: y up and z backward in ARKit

@@ -26,8 +26,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_run_options(p)
     add_sequence_options(p)
     p.add_argument("--camera", choices=["realsense"], default=None,
-                   help="a live camera (as the path `realsense`); with a RealSense .bag as the path, "
-                        "the RealSense SDK plays it back (instead of legslam's bag reader)")
+                   help="a live camera (as the path `realsense`); with a RealSense recording (.bag, .db3) "
+                        "as the path, the RealSense SDK plays it back (instead of legslam's bag reader)")
 
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
@@ -165,9 +165,9 @@ def _camera(args):
     path = Path(args.path)
     if args.camera is None and not (args.path == "realsense" and not path.exists()):
         return None
-    if args.path != "realsense" and not (path.is_file() and path.suffix == ".bag"):
-        raise UserError(f"--camera realsense reads a live camera (path `realsense`) or a RealSense .bag, "
-                        f"not {args.path}")
+    if args.path != "realsense" and not (path.is_file() and path.suffix in (".bag", ".db3")):
+        raise UserError(f"--camera realsense reads a live camera (path `realsense`) or a RealSense recording "
+                        f"(.bag, .db3), not {args.path}")
     ignored = [o for o, v in (("--stride", args.stride != 1), ("--downscale", args.downscale != 1),
                               ("--intrinsics", args.intrinsics), ("--rgb-topic", args.rgb_topic),
                               ("--depth-topic", args.depth_topic), ("--min-confidence", args.min_confidence)) if v]

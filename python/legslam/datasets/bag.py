@@ -1,5 +1,6 @@
 """ROS bags: a ROS1 `.bag` file, or a ROS2 bag folder (metadata.yaml beside .db3 or .mcap
-files), read with the pure-Python rosbags (no ROS install: `pip install 'legslam[bags]'`).
+files; a lone .db3 or .mcap file, as the RealSense SDK records, too), read with the
+pure-Python rosbags (no ROS install: `pip install 'legslam[bags]'`).
 
 Topics. Colour is a sensor_msgs/Image (rgb8, bgr8, rgba8, bgra8, mono8) or a CompressedImage
 (jpeg, png); depth an Image (16UC1 or mono16 in millimetres, 32FC1 in metres) or a
@@ -56,6 +57,7 @@ KNOWN_TOPICS = {
               "/camera/depth_registered/image_raw", "/Depth_0/image/data"),
 }
 TRANSPORTS = ("/compressed", "/compressedDepth")
+BAG_FILES = (".bag", ".db3", ".mcap")  # ROS1; a ROS2 storage file read without its metadata.yaml
 MILLIMETRES = 1000.0  # raw units per metre of 16-bit depth
 MAX_TIME_DIFF = 0.02
 # compressed_depth_image_transport's header before the PNG: format (int32), two float32
@@ -64,11 +66,12 @@ COMPRESSED_DEPTH_HEADER = 12
 
 
 def is_bag(path: Path) -> bool:
-    return (path.is_file() and path.suffix == ".bag") or (path.is_dir() and (path / "metadata.yaml").is_file())
+    return (path.is_file() and path.suffix in BAG_FILES) or (path.is_dir() and (path / "metadata.yaml").is_file())
 
 
 def bag_root(path: Path) -> Path:
-    """The bag at path: a .db3 or .mcap file stands for the ROS2 bag folder that holds it."""
+    """The bag at path: a .db3 or .mcap file stands for the ROS2 bag folder that holds it (all
+    its files), or alone for itself (the RealSense SDK records single .db3 files)."""
     if path.is_file() and path.suffix in (".db3", ".mcap") and (path.parent / "metadata.yaml").is_file():
         return path.parent
     return path
@@ -113,7 +116,12 @@ class _Topic:
 
     @property
     def grey(self) -> bool:
-        return self.encoding.lower() == "mono8"
+        return self.encoding.lower().startswith("mono8")  # "mono8; png compressed mono8" too
+
+    @property
+    def base(self) -> str:
+        """The topic without its transport's suffix."""
+        return next((self.name[: -len(s)] for s in TRANSPORTS if self.name.endswith(s)), self.name)
 
     def describe(self) -> str:
         return f"{self.name}  ({self.msgtype.replace('/msg/', '/')} {self.encoding or '?'}, {self.count} messages)"
@@ -197,9 +205,9 @@ class BagSequence(Sequence):
         if kind == "colour" and any(not t.grey for t in cands):  # mono8 beside colour: infrared
             cands = [t for t in cands if not t.grey]
         names = {t.name for t in cands}
-        cands = [t for t in cands if not any(t.name.endswith(s) and t.name[: -len(s)] in names for s in TRANSPORTS)]
+        cands = [t for t in cands if t.base == t.name or t.base not in names]  # a raw topic's compressed copy
         if len(cands) != 1:
-            known = [t for t in cands if t.name.endswith(KNOWN_TOPICS[kind])]
+            known = [t for t in cands if t.base.endswith(KNOWN_TOPICS[kind])]
             if len(known) == 1:
                 return known[0]
             what = (f"no {kind} image topic" if not cands else
@@ -306,8 +314,9 @@ class BagSequence(Sequence):
 
     def _realsense_depth_scale(self) -> Optional[float]:
         """Raw units per metre of a RealSense SDK recording (its "Depth Units" option, metres
-        per unit), None for other bags."""
-        conns = [c for c in self._reader.connections if c.topic.endswith("/option/Depth Units/value")]
+        per unit: a Float32, a String since SDK 2.5x), None for other bags."""
+        conns = [c for c in self._reader.connections
+                 if c.topic.endswith(("/option/Depth Units/value", "/option/Depth_Units/value"))]
         if not conns:
             return None
         with _reading(f"{self.path} {conns[0].topic}"):
@@ -397,7 +406,7 @@ class BagSequence(Sequence):
 
 def _info_topics(image_topic: str) -> tuple:
     """Where an image topic's CameraInfo is: `camera_info` beside it (its transport suffix
-    dropped), or the RealSense SDK's `info/camera_info` beside its `image/`."""
+    dropped), or older RealSense SDKs' `info/camera_info` beside its `image/`."""
     for suffix in TRANSPORTS:
         image_topic = image_topic[: -len(suffix)] if image_topic.endswith(suffix) else image_topic
     ns = image_topic.rsplit("/", 1)[0]

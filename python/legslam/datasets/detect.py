@@ -17,7 +17,7 @@ from .tum import TUMSequence, is_tum
 
 # name -> (sequence class, detector, what the detector looks for)
 FORMATS = {
-    "bag": (BagSequence, is_bag, "a ROS1 .bag file, or a ROS2 bag folder with metadata.yaml"),
+    "bag": (BagSequence, is_bag, "a ROS1 .bag file, a ROS2 bag folder with metadata.yaml, a .db3 or .mcap file"),
     "record3d": (Record3DSequence, is_record3d, "a Record3D .r3d export"),
     "stray": (StraySequence, is_stray, "Stray Scanner's rgb.mp4 and depth/"),
     "tum": (TUMSequence, is_tum, "rgb.txt and depth.txt"),

@@ -1,5 +1,6 @@
 """Intel RealSense cameras through the SDK (pyrealsense2: `pip install 'legslam[realsense]'`):
-live, or a recorded .bag played back by the SDK. A camera is a stream, not a Sequence: its
+live, or a recording (.bag; .db3 from SDK 2.5x on) played back by the SDK. (legslam's bag
+reader reads those recordings too, without the SDK.) A camera is a stream, not a Sequence: its
 frames come once, as they are taken.
 
     cam = RealSenseCamera()                  # the first camera found; file="rec.bag" plays one back
@@ -11,8 +12,9 @@ frames come once, as they are taken.
 Depth is aligned to the colour camera by the SDK (rs.align), so frames carry the colour
 stream's intrinsics; depth is scaled by the device's depth units. Live, each frame taken is
 the newest the camera has delivered, and the frames that came while SLAM worked on the one
-before are dropped (counted from the camera's frame numbers); played back, every frame is
-taken (the SDK does not play in real time). Each frame taken is written to `record_to` as a
+before are dropped (counted from the camera's frame numbers); played back, every frame the
+SDK delivers is taken (it does not play in real time; it now and then loses a recording's
+first frame, which legslam's bag reader, without the SDK, does not). Each frame taken is written to `record_to` as a
 plain folder dataset (lossless PNGs, camera.json, timestamps.txt), so that the run can be
 evaluated, and run again offline.
 """
@@ -33,6 +35,8 @@ log = logging.getLogger("legslam")
 
 # A live camera that delivers nothing for this long is gone; a recording played back is over.
 TIMEOUT_MS = 5000
+# How long a recording read to its end (playback stopped) is waited for, for frames queued.
+DRAIN_MS = 200
 
 
 def import_sdk():
@@ -52,7 +56,7 @@ class RealSenseCamera:
 
     def __init__(self, file=None, *, width: int = 640, height: int = 480, fps: int = 30,
                  max_frames: Optional[int] = None, sdk=None):
-        """file: a RealSense .bag to play back (None: the first camera connected). width,
+        """file: a RealSense recording to play back (None: the first camera connected). width,
         height, fps: the colour and depth streams asked of a live camera. sdk: the
         pyrealsense2 module (by default imported at start)."""
         self.file = None if file is None else Path(file)
@@ -63,7 +67,7 @@ class RealSenseCamera:
         self._sdk = sdk
         self._stop = threading.Event()
         self._pipe = self._writer = None
-        self.dropped = 0
+        self.dropped = self._taken = 0
 
     def start(self, record_to=None) -> None:
         """Starts the streams (a DatasetError saying why when they cannot) and reads the camera."""
@@ -84,8 +88,10 @@ class RealSenseCamera:
             hint = "" if self.file else " (is one connected, and not in use by another program?)"
             raise DatasetError(f"cannot start {where}: {e}{hint}") from None
         device = profile.get_device()
+        self._playback = None
         if self.file is not None:
-            device.as_playback().set_real_time(False)  # every frame, as fast as SLAM takes them
+            self._playback = device.as_playback()
+            self._playback.set_real_time(False)  # every frame, as fast as SLAM takes them
         intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
         if any(intr.coeffs):
             log.warning("%s: the colour camera's distortion (%s) is ignored: frames are taken as pinhole "
@@ -125,7 +131,7 @@ class RealSenseCamera:
                 if self._writer is not None:
                     self._writer.add(frame)
                 yield k, frame
-                k += 1
+                k = self._taken = k + 1
         finally:
             self.close()
 
@@ -145,7 +151,11 @@ class RealSenseCamera:
 
     def _next(self):
         """The next frameset: live, the newest delivered; None at a recording's end."""
-        ok, frames = self._pipe.try_wait_for_frames(TIMEOUT_MS)
+        timeout = TIMEOUT_MS
+        if self._taken and self._playback is not None and \
+                self._playback.current_status() == self._rs.playback_status.stopped:
+            timeout = DRAIN_MS  # the file is read to its end: only frames already queued are left
+        ok, frames = self._pipe.try_wait_for_frames(timeout)
         if not ok:
             if self.file is not None:
                 return None
