@@ -219,7 +219,7 @@ def write_bag(path: Path, shots, K, *, storage: str = "ros1", colour: str = "rgb
 
 
 def write_realsense_bag(path: Path, shots, K, K_depth, depth_images, colour_from_depth, depth_units: float) -> Path:
-    """A ROS1 bag in the RealSense SDK's layout (its ros_writer): /device_0/sensor_N/<Stream>_0/
+    """A ROS1 bag in older RealSense SDKs' layout (their ros_writer): /device_0/sensor_N/<Stream>_0/
     image/data and info/camera_info, 16-bit depth (mono16) in the "Depth Units" option's metres,
     and each stream's extrinsics from the reference stream (here depth) in tf/0; an infrared
     stream beside them."""

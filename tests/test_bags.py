@@ -179,7 +179,7 @@ def test_depth_of_another_camera_is_registered_with_tf_static(tmp_path):
         D.open(r)
 
 
-def test_a_realsense_sdk_recording_is_read_with_its_depth_units_and_extrinsics(tmp_path):
+def test_an_older_realsense_sdk_recording_is_read_with_its_depth_units_and_extrinsics(tmp_path):
     from legslam.datasets.synthetic import intrinsics
     from recordings import write_realsense_bag
 
