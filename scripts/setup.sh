@@ -10,6 +10,12 @@ fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet maturin numpy onnxruntime opencv-python-headless \
   pytest scikit-image onnx evo
+# The readers of the user's own recordings (extras bags, phone, realsense), so that their tests
+# run: ROS bags (rosbags, pure Python), Record3D's LZFSE depth (lzfse) and Intel's RealSense SDK
+# (pyrealsense2, ~13 MB: the tests record with it from a software device and play it back; a
+# Python it has no wheel for skips those tests).
+.venv/bin/python -m pip install --quiet 'rosbags>=0.10' 'lzfse>=0.4'
+.venv/bin/python -m pip install --quiet 'pyrealsense2>=2.50' || echo "no pyrealsense2 for this Python: its tests skip"
 # The optional live viewer (`--viewer rerun`, about 100 MB of wheels with pyarrow), so that its
 # tests run too; rerun-sdk 0.41 needs Python >= 3.11 (older Pythons skip those tests).
 if .venv/bin/python -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then

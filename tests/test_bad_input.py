@@ -329,3 +329,73 @@ def test_slam_refuses_a_zero_size_and_integer_depth():
     slam = SLAM(SLAMConfig(features=False), np.array([[50.0, 0, 31.5], [0, 50, 23.5], [0, 0, 1]]), 64, 48)
     with pytest.raises(ValueError, match="depth must be float metres, got uint16 .*millimetres"):
         slam.step(np.zeros((48, 64, 3), np.uint8), np.full((48, 64), 1500, np.uint16))
+
+
+# 9. The user's own recordings ------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def shots():
+    pytest.importorskip("rosbags", reason="rosbags is an optional extra: pip install 'legslam[bags]'")
+    from recordings import synthetic_shots
+
+    return synthetic_shots(4, 64, 48)
+
+
+def test_a_bag_without_depth_or_camera_info_says_what_is_missing(shots, tmp_path, capsys):
+    from recordings import write_bag
+
+    s, K = shots
+    nodepth = write_bag(tmp_path / "colour-only.bag", s, K, depth=None)
+    assert main(["run", str(nodepth), "--out", str(tmp_path / "a"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert f"{nodepth}: no depth image topic" in err and "/camera/rgb/image_color  (sensor_msgs/Image rgb8" in err
+    noinfo = write_bag(tmp_path / "no-info.bag", s, K, info=False)
+    assert main(["run", str(noinfo), "--out", str(tmp_path / "b"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert f"{noinfo}: no sensor_msgs/CameraInfo for /camera/rgb/image_color" in err and "--intrinsics fx,fy,cx,cy" in err
+    intrinsics = ",".join(str(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    assert main(["run", str(noinfo), "--out", str(tmp_path / "b"), "--intrinsics", intrinsics, *FAST]) == 0
+    assert json.loads((tmp_path / "b" / "camera.json").read_text())["K"] == K.tolist()
+    with pytest.raises(SystemExit) as e:  # argparse's exit
+        main(["run", str(noinfo), "--out", str(tmp_path / "c"), "--intrinsics", "1,2,3", *FAST])
+    assert e.value.code == 2 and "expected fx,fy,cx,cy (four numbers), got '1,2,3'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("storage", ["ros1", "sqlite3", "mcap"])
+def test_a_truncated_bag_is_named(shots, tmp_path, capsys, storage):
+    from recordings import write_bag
+
+    s, K = shots
+    bag = write_bag(tmp_path / ("rec.bag" if storage == "ros1" else "rec"), s, K, storage=storage)
+    f = bag if storage == "ros1" else next(p for p in bag.iterdir() if p.suffix in (".db3", ".mcap"))
+    f.write_bytes(f.read_bytes()[: f.stat().st_size // 2])  # a recording cut short
+    assert main(["run", str(bag), "--out", str(tmp_path / "run"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot read bag {bag} (cut short, or not a bag?)" in err and "Traceback" not in err
+
+
+def test_depth_of_another_size_without_its_camera_is_refused(shots, tmp_path, capsys):
+    from recordings import Shot, write_bag
+
+    s, K = shots
+    small = [Shot(x.rgb, np.ascontiguousarray(x.depth[::2, ::2]), x.t) for x in s]  # 32x24 depth
+    bag = write_bag(tmp_path / "sizes.bag", small, K)
+    assert main(["run", str(bag), "--out", str(tmp_path / "run"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert (f"{bag}: depth images (/camera/depth/image) are 32x24 and colour images (/camera/rgb/image_color) "
+            "64x48") in err
+
+
+def test_a_damaged_phone_capture_is_named(shots, tmp_path, capsys):
+    from recordings import write_stray
+
+    s, K = shots
+    stray = write_stray(tmp_path / "stray", s, K, s)
+    (stray / "odometry.csv").unlink()
+    assert main(["run", str(stray), "--out", str(tmp_path / "a"), *FAST]) == 2
+    assert f"missing file {stray / 'odometry.csv'}" in capsys.readouterr().err
+    stray = write_stray(tmp_path / "stray2", s, K, s)
+    short = write_stray(tmp_path / "short", s[:2], K, s[:2])
+    shutil.copy(short / "rgb.mp4", stray / "rgb.mp4")  # a video of 2 frames for 4 depth images
+    assert main(["run", str(stray), "--out", str(tmp_path / "b"), *FAST]) == 2
+    assert f"{stray / 'rgb.mp4'} has 2 frames, too few for depth frame 3" in capsys.readouterr().err

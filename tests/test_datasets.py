@@ -347,10 +347,13 @@ def test_nothing_recognised_lists_what_was_looked_for(tmp_path):
     (tmp_path / "notes.txt").write_text("hello")
     with pytest.raises(DatasetNotFoundError) as e:
         D.open(tmp_path)
-    for what in ("rgb.txt", "traj.txt", "intrinsic/", "frame-XXXXXX", "depth/"):
+    for what in ("rgb.txt", "traj.txt", "intrinsic/", "frame-XXXXXX", "depth/", ".bag", "metadata.yaml",
+                 ".r3d", "rgb.mp4"):
         assert what in str(e.value)
-    with pytest.raises(DatasetNotFoundError, match="not a folder"):
+    with pytest.raises(DatasetNotFoundError, match="missing does not exist"):
         D.open(tmp_path / "missing")
+    with pytest.raises(DatasetNotFoundError, match="notes.txt: no dataset format recognised"):
+        D.open(tmp_path / "notes.txt")  # a file, but no recording
     with pytest.raises(DatasetError, match="unknown dataset format"):
         D.open(tmp_path, format="kitti")
 

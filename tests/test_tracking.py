@@ -259,7 +259,7 @@ def test_odometry_cli_end_to_end(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "frame 12/12" in captured.err and "lost 0" in captured.err
     assert main(["odometry", "/nonexistent", "--out", str(out)]) == 2
-    assert "cannot read" in capsys.readouterr().err
+    assert "/nonexistent does not exist" in capsys.readouterr().err
 
 
 def test_odometry_skips_unreadable_frames_and_keeps_the_trajectory_when_it_stops(

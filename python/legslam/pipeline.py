@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from .datasets import each_readable
 from .eval import evaluate_run
-from .run_folder import (CONFIG, MAP, METRICS, PCA_FILE, TIMINGS, write_camera, write_json,
+from .run_folder import (CONFIG, MAP, METRICS, PCA_FILE, RECORDING, TIMINGS, write_camera, write_json,
                          write_trajectory)
 from .slam import SLAM, SLAMConfig
 
@@ -30,7 +31,10 @@ log = logging.getLogger("legslam")
 
 def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_every: int = 5,
         encoder=None, viewer=None) -> dict:
-    """Runs SLAM over a sequence (from legslam.datasets.open) and writes the outputs.
+    """Runs SLAM over a sequence (from legslam.datasets.open) and writes the outputs. A live
+    camera (datasets.realsense.RealSenseCamera) runs in real-time mode, records its frames in
+    the run folder (`recording/`) and is evaluated on them; `metrics["dropped_frames"]`
+    counts the frames it delivered that SLAM did not keep up with.
 
     `progress`, when given, hears of every frame (`frame(index, text)`) and of the final
     mapping iterations (`final_iterations(done, total)`). `viewer` (e.g.
@@ -38,20 +42,35 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
     finished map, `on_finish(slam)`; its time is part of the wall time and is reported as its
     own stage."""
     config = config or SLAMConfig()
+    live = getattr(seq, "live", False)
+    if live and not config.mapping_thread:
+        log.info("a live camera runs in real-time mode (mapping_thread = true)")
+        config = replace(config, mapping_thread=True)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / CONFIG, config.to_dict())
-    if not len(seq):
-        raise ValueError(f"{getattr(seq, 'path', 'the sequence')} has no frames")
-    first = seq[0]
-    h, w = first.depth.shape
-    write_camera(out, first.K, w, h, str(getattr(seq, "path", "")), getattr(seq, "selection", None))
-    slam = SLAM(config, first.K, w, h, encoder=encoder)
+    if live:
+        seq.start(record_to=out / RECORDING)
+        K, w, h, source = seq.K, seq.width, seq.height, out / RECORDING
+        frames = seq.frames()
+    else:
+        if not len(seq):
+            raise ValueError(f"{getattr(seq, 'path', 'the sequence')} has no frames")
+        first = seq[0]
+        (h, w), K, source = first.depth.shape, first.K, getattr(seq, "path", "")
+        frames = each_readable(seq)
+    write_camera(out, K, w, h, str(source), None if live else getattr(seq, "selection", None))
+    try:
+        slam = SLAM(config, K, w, h, encoder=encoder)
+    except BaseException:
+        if live:
+            seq.close()
+        raise
     t0 = time.perf_counter()
     stamps, viewer_ms = [], []
     unreadable: set[int] = set()
     try:
-        for i, f in each_readable(seq):
+        for i, f in frames:
             if f is None:  # lost: the motion model's pose
                 unreadable.add(i)
                 stamps.append(seq.timestamp(i))
@@ -66,9 +85,13 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
             if progress is not None:
                 progress.frame(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
                                   f"gaussians {slam.num_gaussians}")
-        live = time.perf_counter() - t0
+        live_s = time.perf_counter() - t0
+        if live:
+            seq.close()  # the camera's streams stop, its recording is complete
         slam.finish(progress=None if progress is None else progress.final_iterations)
     except BaseException:  # interrupted, or too many unreadable frames: keep the work done
+        if live:
+            seq.close()
         _save_partial(slam, out, stamps)
         raise
     if viewer is not None:
@@ -78,7 +101,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
     wall = time.perf_counter() - t0
 
     _save_trajectory_and_map(slam, out, stamps)
-    timings = _timing_table(slam, wall, live, viewer_ms)
+    timings = _timing_table(slam, wall, live_s, viewer_ms)
     write_json(out / TIMINGS, timings)
     renders = out / "renders"
     renders.mkdir(exist_ok=True)
@@ -88,6 +111,9 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
                "frames_without_depth": slam.frames_without_depth,
                "frames_depth_out_of_range": slam.frames_depth_out_of_range,
                "gaussians": slam.mapper.num_gaussians, "fps": timings["fps"]}
+    if live:  # taken from the camera as they came; evaluated on the frames recorded
+        metrics["dropped_frames"] = seq.dropped
+        seq = seq.recording()
     size = (slam.width, slam.height)
     metrics.update(evaluate_run(
         seq, slam.poses, lambda pose, features: slam.mapper.render(pose, slam.K, *size, features),

@@ -26,14 +26,16 @@ from .eval import TrajectoryError, read_tum, write_tum
 from .map import GaussianMap
 
 __all__ = ["RunFolderError", "RunFolder", "write_json", "write_camera", "write_trajectory",
-           "replace_atomically", "RUN_FILES",
+           "replace_atomically", "RUN_FILES", "RECORDING",
            "TRAJECTORY", "MAP", "PCA_FILE", "CAMERA", "CONFIG", "METRICS", "TIMINGS"]
 
 TRAJECTORY, MAP, PCA_FILE = "trajectory.txt", "map.ply", "pca.npz"
 CAMERA, CONFIG, METRICS, TIMINGS = "camera.json", "config.json", "metrics.json", "timings.json"
+#: A live camera's frames, as the run took them (a folder dataset).
+RECORDING = "recording"
 #: Everything a run and the commands on its folder write there: what `--overwrite` replaces.
 RUN_FILES = (TRAJECTORY, MAP, PCA_FILE, CAMERA, CONFIG, METRICS, TIMINGS, "summary.json",
-             "eval.json", "renders", "queries", "views")
+             "eval.json", "renders", "queries", "views", RECORDING)
 
 
 class RunFolderError(ValueError):

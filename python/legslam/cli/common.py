@@ -4,16 +4,18 @@ opened with those errors."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
+from ..datasets import DatasetError, open as open_dataset
 from ..run_folder import CAMERA, MAP, TRAJECTORY, RunFolder, RunFolderError
 
 __all__ = ["UserError", "Stopped", "stopping_on_signals", "at_least", "output_dir", "output_file",
-           "open_run", "available_memory"]
+           "open_run", "available_memory", "add_sequence_options", "open_sequence"]
 
 #: Signals that stop a command like Ctrl-C: `timeout`, `kill`, `docker stop`, job schedulers,
 #: a closed terminal.
@@ -49,6 +51,48 @@ def stopping_on_signals():
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+
+
+def add_sequence_options(p) -> None:
+    """How to read the sequence at the command's PATH (run, odometry)."""
+    p.add_argument("--format", default="auto", help="dataset format (default: detected)")
+    p.add_argument("--stride", type=int, default=1, help="use every N-th frame")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--downscale", type=int, default=1, help="shrink images by this integer factor")
+    p.add_argument("--intrinsics", type=_intrinsics, default=None, metavar="FX,FY,CX,CY",
+                   help="the camera's focal lengths and principal point in pixels, for a recording "
+                        "without them (a bag without CameraInfo), or instead of its own (the images "
+                        "are then taken as they are, without undistortion)")
+    p.add_argument("--rgb-topic", default=None,
+                   help="a bag's colour image topic (default: the only one, or the one a recorder names)")
+    p.add_argument("--depth-topic", default=None, help="a bag's depth image topic (default: likewise)")
+    p.add_argument("--min-confidence", type=int, choices=(0, 1, 2), default=None,
+                   help="phone captures: keep depth of at least this ARKit confidence (0 low, 1 medium, "
+                        "2 high; default 2)")
+
+
+def _intrinsics(text: str) -> tuple:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4:
+        raise argparse.ArgumentTypeError(f"expected fx,fy,cx,cy (four numbers), got {text!r}")
+    return values
+
+
+def open_sequence(args, path=None):
+    """The sequence at `path` (default args.path) as add_sequence_options' options ask."""
+    at_least("--stride", args.stride)
+    at_least("--max-frames", args.max_frames)
+    at_least("--downscale", args.downscale)
+    try:
+        return open_dataset(args.path if path is None else path, format=args.format, stride=args.stride,
+                            max_frames=args.max_frames, downscale=args.downscale, intrinsics=args.intrinsics,
+                            rgb_topic=args.rgb_topic, depth_topic=args.depth_topic,
+                            min_confidence=args.min_confidence)
+    except (DatasetError, FileNotFoundError) as e:
+        raise UserError(str(e)) from e
 
 
 def at_least(name: str, v, least: int = 1) -> None:

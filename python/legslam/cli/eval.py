@@ -47,8 +47,7 @@ def _open_at_run_size(path, fmt: str, width: int, height: int):
 def _open_selection(path, fmt: str, selection: dict):
     """The frames the run saw (its stride, range and downscale, as camera.json records)."""
     try:
-        return open_dataset(path, format=fmt, frames=tuple(selection["frames"]),
-                            stride=selection["stride"], downscale=selection["downscale"])
+        return open_dataset(path, format=fmt, **{**selection, "frames": tuple(selection["frames"])})
     except (DatasetError, FileNotFoundError, KeyError, TypeError) as e:
         raise UserError(f"cannot open the run's frames of {path} ({selection}): {e}") from e
 

@@ -22,17 +22,13 @@ from .. import datasets
 from ..eval import ate_rmse, write_tum
 from ..run_folder import replace_atomically
 from ..tracking import DEFAULT_CONFIG, Odometry, fitting_levels
-from .common import UserError, at_least, output_file
+from .common import UserError, add_sequence_options, open_sequence, output_file
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("path", help="sequence folder or file the dataset loaders read")
     p.add_argument("--out", required=True, help="output trajectory (TUM format)")
-    p.add_argument("--format", default="auto", help="dataset format (default: auto-detect)")
-    p.add_argument("--stride", type=int, default=1, help="use every N-th frame")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
-    p.add_argument("--downscale", type=int, default=1,
-                   help="downscale images by this integer factor on load")
+    add_sequence_options(p)
     p.add_argument("--finest-level", type=int, default=None,
                    help="finest pyramid level used by the tracker (0 = full resolution)")
     p.add_argument("--levels", type=int, default=None, help="pyramid levels used")
@@ -51,15 +47,8 @@ def _write(path: Path, stamps, poses) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    at_least("--stride", args.stride)
-    at_least("--downscale", args.downscale)
-    at_least("--max-frames", args.max_frames)
     out = output_file(args.out)
-    try:
-        seq = datasets.open(args.path, format=args.format, stride=args.stride,
-                            max_frames=args.max_frames, downscale=args.downscale)
-    except (FileNotFoundError, NotADirectoryError, ValueError) as e:
-        raise UserError(f"cannot read {args.path}: {e}")
+    seq = open_sequence(args)
     if out.exists() and Path(seq.path).resolve() in out.resolve().parents:
         raise UserError(f"--out {out} is a file of the input sequence {seq.path}: give another name")
     n = len(seq)

@@ -13,7 +13,8 @@ class Progress:
     """What `legslam.pipeline.run` reports, shown: every frame (`frame`) and the final mapping
     iterations (`final_iterations`)."""
 
-    def __init__(self, total: int):
+    def __init__(self, total: int | None):
+        """total: the frames to come (None: not known, a live camera's)."""
         self.total = total
         self.tty = sys.stderr.isatty()
         self.start = time.perf_counter()
@@ -21,7 +22,8 @@ class Progress:
 
     def frame(self, i: int, text: str) -> None:
         fps = (i + 1) / max(time.perf_counter() - self.start, 1e-9)
-        self._show(f"frame {i + 1}/{self.total}  {fps:5.2f} fps  {text}", i + 1 == self.total)
+        of = "" if self.total is None else f"/{self.total}"
+        self._show(f"frame {i + 1}{of}  {fps:5.2f} fps  {text}", i + 1 == self.total)
 
     def final_iterations(self, done: int, total: int) -> None:
         """The mapping iterations after the last frame (minutes with a large --final-iters)."""

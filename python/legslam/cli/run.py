@@ -4,26 +4,30 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import signal
 import sys
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
-from ..datasets import DatasetError, open as open_dataset
+from ..datasets.realsense import RealSenseCamera
 from ..eval import every_key
 from ..pipeline import run as run_pipeline
 from ..run_folder import RUN_FILES, write_json
 from ..slam import SLAMConfig
 from ..viewer import RerunViewer, ViewerError
-from .common import UserError, at_least, output_dir
+from .common import UserError, add_sequence_options, at_least, open_sequence, output_dir
 from .progress import Progress
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", help="sequence folder (TUM, Replica, ScanNet, 7-Scenes, plain folder)")
+    p.add_argument("path", help="a sequence folder (TUM, Replica, ScanNet, 7-Scenes, plain folder), a ROS1 "
+                                ".bag or ROS2 bag folder, a Stray Scanner export, a Record3D .r3d; or "
+                                "`realsense` for a live RealSense camera")
     add_run_options(p)
-    p.add_argument("--format", default="auto", help="dataset format (default: auto-detect)")
-    p.add_argument("--stride", type=int, default=1, help="use every N-th frame")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after this many frames")
-    p.add_argument("--downscale", type=int, default=1, help="shrink images by this integer factor")
+    add_sequence_options(p)
+    p.add_argument("--camera", choices=["realsense"], default=None,
+                   help="a live camera (as the path `realsense`); with a RealSense recording (.bag, .db3) "
+                        "as the path, the RealSense SDK plays it back (instead of legslam's bag reader)")
 
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
@@ -100,19 +104,23 @@ def run_output_dir(path, source, overwrite: bool) -> Path:
 
 
 def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
-    """Runs SLAM over `seq` into --out (default legslam-out/NAME) and prints the figures."""
+    """Runs SLAM over `seq` (a Sequence, or a live camera) into --out (default
+    legslam-out/NAME) and prints the figures."""
     out = run_output_dir(args.out or Path("legslam-out") / name, seq.path, args.overwrite)
     viewer = _viewer(args)
+    live = getattr(seq, "live", False)
+    progress = None if args.quiet else Progress(None if live else len(seq))
     try:
-        result = run_pipeline(seq, out, config, progress=None if args.quiet else Progress(len(seq)),
-                              viewer=viewer)
+        with stopping_on_interrupt(seq) if live else nullcontext():
+            result = run_pipeline(seq, out, config, progress=progress, viewer=viewer)
     # The encoder model not in the cache, the first frame or too many in a row unreadable, a
-    # config the camera or encoder cannot take.
+    # config the camera or encoder cannot take, a camera that cannot start.
     except (FileNotFoundError, ValueError, ViewerError) as e:
         raise UserError(str(e)) from e
     m, t = result["metrics"], result["timings"]
     unreadable = f" ({len(m['unreadable_frames'])} unreadable)" if m["unreadable_frames"] else ""
-    print(f"frames {m['frames']}  keyframes {m['keyframes']}  lost {m['lost_frames']}{unreadable}  "
+    dropped = f"  dropped {m['dropped_frames']} (not kept up with)" if live else ""
+    print(f"frames {m['frames']}{dropped}  keyframes {m['keyframes']}  lost {m['lost_frames']}{unreadable}  "
           f"gaussians {m['gaussians']}  {t['fps']:.2f} fps ({t['fps_live']:.2f} while frames came in)")
     if m["gaussians"] == 0:
         print(f"warning: the map is empty: of {m['frames']} frames, {m['frames_without_depth']} had "
@@ -136,14 +144,44 @@ def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
     return 0
 
 
-def run(args) -> int:
-    at_least("--stride", args.stride)
-    at_least("--max-frames", args.max_frames)
-    at_least("--downscale", args.downscale)
-    config = run_config(args)
+@contextmanager
+def stopping_on_interrupt(camera):
+    """Within: the first Ctrl-C ends a live camera's frames, and the run finishes as a
+    sequence's does (final iterations, every output); a second one interrupts."""
+    def stop(signum, frame):
+        signal.signal(signal.SIGINT, previous)
+        print("stopping: the frames taken are being finished (Ctrl-C again to stop now)", file=sys.stderr)
+        camera.stop()
+
+    previous = signal.signal(signal.SIGINT, stop)
     try:
-        seq = open_dataset(args.path, format=args.format, stride=args.stride,
-                           max_frames=args.max_frames, downscale=args.downscale)
-    except (DatasetError, FileNotFoundError) as e:
-        raise UserError(str(e)) from e
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def _camera(args):
+    """The live camera (or the RealSense SDK's playback) the arguments ask for, or None."""
+    path = Path(args.path)
+    if args.camera is None and not (args.path == "realsense" and not path.exists()):
+        return None
+    if args.path != "realsense" and not (path.is_file() and path.suffix in (".bag", ".db3")):
+        raise UserError(f"--camera realsense reads a live camera (path `realsense`) or a RealSense recording "
+                        f"(.bag, .db3), not {args.path}")
+    ignored = [o for o, v in (("--stride", args.stride != 1), ("--downscale", args.downscale != 1),
+                              ("--intrinsics", args.intrinsics), ("--rgb-topic", args.rgb_topic),
+                              ("--depth-topic", args.depth_topic), ("--min-confidence", args.min_confidence)) if v]
+    if ignored:
+        raise UserError(f"{', '.join(ignored)} cannot be used with a RealSense camera (the device gives its own)")
+    at_least("--max-frames", args.max_frames)
+    return RealSenseCamera(None if args.path == "realsense" else path, max_frames=args.max_frames)
+
+
+def run(args) -> int:
+    camera = _camera(args)
+    if camera is not None:
+        args.realtime = True  # a live camera does not wait for the map
+        return run_sequence(camera, camera.name, args, run_config(args))
+    config = run_config(args)
+    seq = open_sequence(args)
     return run_sequence(seq, Path(args.path).resolve().name, args, config)

@@ -35,26 +35,35 @@ def read_text(path: Path, what: str = "file") -> str:
         raise DatasetError(f"{what} {path} is not a text file") from None
 
 
-def _imread(path: Path, flags: int) -> np.ndarray:
+def decode_image(data, flags: int, where) -> np.ndarray:
+    """An encoded image (PNG, JPEG, ...: bytes or a uint8 array) decoded by cv2 with `flags`;
+    what cannot be decoded is a DatasetError naming `where` (a file, a bag message)."""
     import cv2
 
-    # imdecode (not imread) so that non-ASCII paths work on every platform.
-    data = np.frombuffer(read_bytes(path, "image"), dtype=np.uint8)
     try:
-        img = cv2.imdecode(data, flags)
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     except cv2.error:
         img = None
     if img is None:
-        raise DatasetError(f"cannot decode image {path} (corrupt or not an image)")
+        raise DatasetError(f"cannot decode image {where} (corrupt or not an image)")
     return img
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    # imdecode (not imread) so that non-ASCII paths work on every platform.
+    return decode_image(read_bytes(path, "image"), flags, path)
+
+
+def decode_rgb(data, where) -> np.ndarray:
+    """HxWx3 uint8 RGB from any encoded 8-bit colour (or grey) image."""
+    import cv2
+
+    return cv2.cvtColor(decode_image(data, cv2.IMREAD_COLOR, where), cv2.COLOR_BGR2RGB)
 
 
 def read_rgb(path: Path) -> np.ndarray:
     """HxWx3 uint8 RGB from any 8-bit colour (or grey) image."""
-    import cv2
-
-    img = _imread(Path(path), cv2.IMREAD_COLOR)
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    return decode_rgb(read_bytes(path, "image"), path)
 
 
 def read_depth(path: Path) -> np.ndarray:
@@ -86,10 +95,11 @@ def read_labels(path: Path) -> np.ndarray:
     return img
 
 
-def read_numbers(path: Path, columns=None, line_numbers: bool = False):
+def read_numbers(path: Path, columns=None, line_numbers: bool = False, header: bool = False):
     """A text table of numbers (# comments and blank lines skipped, commas or spaces) as a 2D
     float64 array; columns, when given, is the set of accepted row lengths. With
-    `line_numbers`, also each row's line number in the file."""
+    `line_numbers`, also each row's line number in the file; with `header`, a first line of
+    column names is skipped."""
     path = Path(path)
     rows, lines = [], []
     for n, line in enumerate(read_text(path).splitlines(), 1):
@@ -99,6 +109,9 @@ def read_numbers(path: Path, columns=None, line_numbers: bool = False):
         try:
             row = [float(v) for v in line.split()]
         except ValueError:
+            if header and not rows:  # the column names
+                header = False
+                continue
             raise DatasetError(f"{path}:{n}: not a row of numbers: {line!r}") from None
         widths = (len(rows[0]),) if rows else columns  # all rows as long as the first
         if widths is not None and len(row) not in widths:

@@ -58,6 +58,12 @@ def make_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
+def scale_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """K of the image resized by sx, sy, about pixel centres as cv2.resize samples:
+    u' = (u + 0.5) * sx - 0.5."""
+    return make_K(K[0, 0] * sx, K[1, 1] * sy, (K[0, 2] + 0.5) * sx - 0.5, (K[1, 2] + 0.5) * sy - 0.5)
+
+
 def as_K(intrinsics) -> np.ndarray:
     """A 3x3 K from (fx, fy, cx, cy) or a 3x3 / 4x4 matrix."""
     a = np.asarray(intrinsics, dtype=np.float64)
@@ -117,6 +123,9 @@ class Sequence:
     class_names: Optional[list] = None
     # Raw depth values that mean "no measurement" besides 0 (7-Scenes marks some with 65535).
     invalid_depth_values: tuple = ()
+    # The keyword options of the format's own (a bag's topics, a phone's confidence), which
+    # `open` passes on.
+    options: tuple = ()
 
     def __init__(self, path, *, stride: int = 1, frames=None, max_frames: Optional[int] = None,
                  downscale: int = 1, intrinsics=None, depth_scale: Optional[float] = None):
@@ -169,8 +178,7 @@ class Sequence:
             K[1, 1], K[1, 2] = -K[1, 1], (h - 1) - K[1, 2]
         self.native_K = K
         warn_unusual_camera(K, w, h, str(self.path))
-        # Scaling about pixel centres, as cv2.resize samples: u' = (u + 0.5) / f - 0.5.
-        self.K = make_K(K[0, 0] / f, K[1, 1] / f, (K[0, 2] + 0.5) / f - 0.5, (K[1, 2] + 0.5) / f - 0.5)
+        self.K = scale_K(K, 1 / f, 1 / f)
         self.width, self.height = w // f, h // f
 
         n = self._count()
@@ -187,9 +195,15 @@ class Sequence:
 
     @property
     def selection(self) -> dict:
-        """The options that select these frames from the folder, as `open` takes them."""
+        """The options that select these frames from the folder, as `open` takes them: the
+        range, stride and downscale, the format's own options and given intrinsics."""
         r = self._indices
-        return {"frames": [r.start, r.stop], "stride": r.step, "downscale": self._downscale}
+        out = {"frames": [r.start, r.stop], "stride": r.step, "downscale": self._downscale}
+        out.update({name: getattr(self, name) for name in self.options})
+        if self._K_override is not None:
+            K = self._K_override
+            out["intrinsics"] = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+        return out
 
     @property
     def intrinsics(self) -> tuple:

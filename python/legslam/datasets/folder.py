@@ -7,6 +7,7 @@ that comes in no published layout.
     camera.json, cam_params.json, intrinsics.json, intrinsics.txt, camera-intrinsics.txt or K.txt
     poses.txt, pose.txt, groundtruth.txt or traj.txt    optional, line i = frame i: 7 numbers
                    (tx ty tz qx qy qz qw), 8 (TUM, with a timestamp) or 16 (row-major 4x4 c2w)
+    timestamps.txt optional, line i = frame i's time in seconds (where no pose file has them)
     labels/ (or label/) N.png and classes.txt    optional: class ids, line k of classes.txt
                    names id k; 255 (8-bit) or 65535 (16-bit) marks unlabelled pixels
 
@@ -18,6 +19,9 @@ sequence: the image is flipped and the focal length negated, poses unchanged.
 
 from __future__ import annotations
 
+import json
+import queue
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +39,9 @@ POSE_FILES = ("poses.txt", "pose.txt", "groundtruth.txt", "traj.txt")
 COLOUR_EXTS = (".png", ".jpg", ".jpeg")
 DEPTH_EXTS = (".png", ".tif", ".tiff", ".exr", ".npy")
 DEFAULT_DEPTH_SCALE = 1000.0
+TIMESTAMPS = "timestamps.txt"
+# Frames a FolderWriter holds while its thread encodes the ones before.
+WRITE_QUEUE = 32
 
 
 def _first_dir(path: Path, names) -> Path | None:
@@ -91,6 +98,10 @@ class FolderSequence(Sequence):
                 raise DatasetError(f"{pose_file} has {len(poses)} poses for {n} frames (line i must be frame i)")
             self._poses = [check_pose(T, f"{pose_file}:{line}") for line, T in zip(lines, poses)]
             self._stamps = stamps
+        if self._stamps is None and (p / TIMESTAMPS).is_file():
+            self._stamps = read_numbers(p / TIMESTAMPS, columns=(1,))[:, 0]
+            if len(self._stamps) != n:
+                raise DatasetError(f"{p / TIMESTAMPS} has {len(self._stamps)} times for {n} frames (line i is frame i)")
 
         cam = next((p / f for f in CAMERA_FILES if (p / f).is_file()), None)
         K, scale = None, None
@@ -122,3 +133,54 @@ class FolderSequence(Sequence):
 
     def _timestamp(self, i):
         return self._stamps[i] if self._stamps is not None else i / NOMINAL_FPS
+
+
+class FolderWriter:
+    """Frames written as a folder dataset as they come (a live camera's), by a thread of its
+    own so that encoding does not hold up the caller: color/N.png, depth/N.png (16-bit, raw
+    units of depth_scale per metre), camera.json and, at close, timestamps.txt."""
+
+    def __init__(self, path, K, width: int, height: int, depth_scale: float):
+        self.path = Path(path)
+        for sub in ("color", "depth"):
+            (self.path / sub).mkdir(parents=True, exist_ok=True)
+        camera = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "width": width, "height": height,
+                  "depth_scale": depth_scale}
+        (self.path / "camera.json").write_text(json.dumps(camera, indent=1) + "\n")
+        self.depth_scale = depth_scale
+        self._stamps: list = []
+        self._error: Exception | None = None
+        self._queue: queue.Queue = queue.Queue(WRITE_QUEUE)
+        self._thread = threading.Thread(target=self._work, name="legslam-record", daemon=True)
+        self._thread.start()
+
+    def add(self, frame) -> None:
+        if self._error is not None:
+            raise self._error
+        self._stamps.append(frame.timestamp)
+        self._queue.put(frame)
+
+    def close(self) -> None:
+        """Waits for the frames added, then writes timestamps.txt."""
+        self._queue.put(None)
+        self._thread.join()
+        (self.path / TIMESTAMPS).write_text("".join(f"{t:.6f}\n" for t in self._stamps))
+        if self._error is not None:
+            raise self._error
+
+    def _work(self) -> None:
+        import cv2
+
+        while (frame := self._queue.get()) is not None:
+            if self._error is not None:
+                continue
+            name = f"{frame.index:06d}.png"
+            raw = np.clip(np.rint(frame.depth * self.depth_scale), 0, 65535).astype(np.uint16)
+            for sub, img in (("color", cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)), ("depth", raw)):
+                ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+                try:
+                    if not ok:
+                        raise OSError(f"cannot encode {name}")
+                    (self.path / sub / name).write_bytes(buf.tobytes())
+                except OSError as e:
+                    self._error = DatasetError(f"cannot record frame {frame.index} into {self.path / sub}: {e}")

@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ._io import read_depth, read_intrinsics, read_numbers, read_rgb
-from .base import NOMINAL_FPS, DatasetError, DatasetNotFoundError, Sequence, check_pose, make_K, paths_sorted
+from .base import NOMINAL_FPS, DatasetError, DatasetNotFoundError, Sequence, check_pose, make_K, paths_sorted, scale_K
 
 DEPTH_SCALE = 6553.5
 STANDARD_SIZE = (1200, 680)
@@ -55,9 +55,8 @@ class ReplicaSequence(Sequence):
                 raise DatasetError(f"{cam} describes {size[0]}x{size[1]} images but {self._rgb[0]} is {w}x{h}")
             scale = DEPTH_SCALE if scale is None else scale
         else:
-            sx, sy = w / STANDARD_SIZE[0], h / STANDARD_SIZE[1]
-            fx, fy, cx, cy = STANDARD_CAMERA
-            K, scale = make_K(fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5), DEPTH_SCALE
+            K = scale_K(make_K(*STANDARD_CAMERA), w / STANDARD_SIZE[0], h / STANDARD_SIZE[1])
+            scale = DEPTH_SCALE
         self.camera_file = cam
         self._setup(K, scale, (w, h))
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from ._io import poses_from_rows, read_depth, read_numbers, read_rgb, read_text
 from .base import DatasetError, DatasetNotFoundError, Sequence, check_pose, make_K
+from .undistort import undistortion
 
 DEPTH_SCALE = 5000.0
 # Calibrations from the dataset's web page: fx fy cx cy and k1 k2 p1 p2 k3.
@@ -112,11 +113,7 @@ class TUMSequence(Sequence):
         (fx, fy, cx, cy), dist = camera_for(p) if self._K_override is None else (DEFAULT_CAMERA[0], ())
         K = make_K(fx, fy, cx, cy)
         h, w = read_rgb(self._rgb[0]).shape[:2]
-        self._maps = None
-        if any(dist):
-            import cv2
-
-            self._maps = cv2.initUndistortRectifyMap(K, np.array(dist), None, K, (w, h), cv2.CV_32FC1)
+        self._undistort = undistortion(K, dist, (w, h))
         self._setup(K, DEPTH_SCALE, (w, h))
 
     def _count(self):
@@ -124,13 +121,9 @@ class TUMSequence(Sequence):
 
     def _read(self, i):
         rgb, depth = read_rgb(self._rgb[i]), read_depth(self._depth[i])
-        # Wrong-sized images are left for the base class to report.
-        if self._maps is not None and rgb.shape[:2] == depth.shape == self._maps[0].shape:
-            import cv2
-
-            mx, my = self._maps
-            rgb = cv2.remap(rgb, mx, my, cv2.INTER_LINEAR)
-            depth = cv2.remap(depth, mx, my, cv2.INTER_NEAREST)
+        u = self._undistort
+        if u is not None and u.fits(rgb) and u.fits(depth):  # other sizes: an error later
+            rgb, depth = u.colour(rgb), u.depth(depth)
         return rgb, depth, None
 
     def _pose(self, i):
