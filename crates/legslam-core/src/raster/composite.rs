@@ -137,6 +137,35 @@ pub(crate) fn for_each_group(s: &Splat, r: &TileRect, mut f: impl FnMut(Group)) 
     }
 }
 
+/// How many Gaussians of a tile's list ahead to prefetch: the lists reach splats and features
+/// in no particular order, and a miss would stall the walk.
+const PREFETCH: usize = 8;
+
+/// Asks the cache for the splat (and features) of the Gaussian `PREFETCH` entries after `j`.
+#[inline(always)]
+pub(crate) fn prefetch_ahead(
+    list: &[u32],
+    j: usize,
+    splats: &[Splat],
+    features: &[Real],
+    k: usize,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(&gi) = list.get(j + PREFETCH) {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let gi = gi as usize;
+        // SAFETY: prefetching never faults; both addresses lie within their slices.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(splats.as_ptr().add(gi) as *const i8);
+            for line in (0..k).step_by(64 / std::mem::size_of::<Real>()) {
+                _mm_prefetch::<_MM_HINT_T0>(features.as_ptr().add(gi * k + line) as *const i8);
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (list, j, splats, features, k);
+}
+
 /// Per-pixel accumulators of one tile, structure of arrays, indexed (y - y0) * TILE + (x - x0).
 pub(crate) struct TileAcc {
     pub trans: [Real; TILE_LANES],
@@ -193,6 +222,7 @@ pub(crate) fn composite<L: Lanes>(
     let (zero, one) = (L::splat(0.0), L::splat(1.0));
     let t_min = L::splat(cfg.transmittance_min);
     for (j, &gi) in list.iter().enumerate() {
+        prefetch_ahead(list, j, splats, features, k);
         let s = &splats[gi as usize];
         let f = &features[gi as usize * k..][..k];
         let color = s.color.to_array().map(L::splat);

@@ -12,8 +12,10 @@ use super::tiles::{bin, rect, rect_area, Bins, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
 use crate::Real;
 
-/// A projected Gaussian, as the compositing loops read it.
+/// A projected Gaussian, as the compositing loops read it: one cache line each, since the
+/// tiles' lists reach them in no particular order.
 #[derive(Clone, Copy, Debug, Default)]
+#[repr(align(64))]
 pub(crate) struct Splat {
     pub xy: V2,
     /// Inverse 2D covariance entries (a, b, c): sigma = 0.5 (a dx^2 + c dy^2) + b dx dy.
@@ -21,8 +23,9 @@ pub(crate) struct Splat {
     pub opacity: Real,
     pub depth: Real,
     pub color: V3,
-    /// Half extents (x, y) in pixels of the region where alpha can reach `alpha_min`.
-    pub ext: V2,
+    /// The pixels [x0, x1) x [y0, y1) of the image within the Gaussian's extent (the region
+    /// where its alpha can reach `alpha_min`), so that a tile clips integers.
+    pub pixels: [u32; 4],
     /// ln(opacity / alpha_min): where sigma exceeds it, alpha is below the cut-off.
     pub sigma_max: Real,
 }
@@ -31,22 +34,29 @@ impl Splat {
     /// Rows of the tile [y0, y_end) that the Gaussian's extent reaches.
     #[inline(always)]
     pub fn rows(&self, y0: usize, y_end: usize) -> std::ops::Range<usize> {
-        span(self.xy.y - self.ext.y, self.xy.y + self.ext.y, y0, y_end)
+        clip(self.pixels[1], self.pixels[3], y0, y_end)
     }
 
     /// Columns of the tile [x0, x_end) that the Gaussian's extent reaches.
     #[inline(always)]
     pub fn columns(&self, x0: usize, x_end: usize) -> std::ops::Range<usize> {
-        span(self.xy.x - self.ext.x, self.xy.x + self.ext.x, x0, x_end)
+        clip(self.pixels[0], self.pixels[2], x0, x_end)
     }
 }
 
-/// Integer coordinates in [lo, hi] clipped to [start, end).
+/// [lo, hi) within [start, end) (empty when they do not meet).
 #[inline(always)]
-fn span(lo: Real, hi: Real, start: usize, end: usize) -> std::ops::Range<usize> {
-    let first = lo.ceil().max(start as Real) as usize;
-    let last = ((hi.floor() + 1.0).max(0.0) as usize).min(end);
-    first.max(start)..last.max(first.max(start))
+fn clip(lo: u32, hi: u32, start: usize, end: usize) -> std::ops::Range<usize> {
+    let first = (lo as usize).max(start);
+    first..(hi as usize).min(end).max(first)
+}
+
+/// The integer coordinates in [c - e, c + e], clipped to [0, size), as [first, end).
+#[inline]
+fn pixel_span(c: Real, e: Real, size: usize) -> [u32; 2] {
+    let first = (c - e).ceil().max(0.0).min(size as Real) as u32;
+    let end = ((c + e).floor() + 1.0).max(0.0).min(size as Real) as u32;
+    [first, end.max(first)]
 }
 
 /// What the backward pass needs from the forward pass.
@@ -187,6 +197,7 @@ fn project_all(
     let cfg = &opts.config;
     let pin = Pinhole::new(cam, cfg);
     let cam_pos = cam.position();
+    let (image_w, image_h) = (cam.intrinsics.width, cam.intrinsics.height);
     let n = g.len();
     st.splats.resize(n, Splat::default());
     st.rects.resize(n, [0; 4]);
@@ -228,7 +239,13 @@ fn project_all(
                 opacity,
                 depth: geo.p_cam.z,
                 color,
-                ext,
+                pixels: {
+                    let ([x0, x1], [y0, y1]) = (
+                        pixel_span(geo.xy.x, ext.x, image_w),
+                        pixel_span(geo.xy.y, ext.y, image_h),
+                    );
+                    [x0, y0, x1, y1]
+                },
                 sigma_max: (opacity / cfg.alpha_min).ln(),
             };
             *rect = r;
