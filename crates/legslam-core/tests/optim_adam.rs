@@ -151,7 +151,14 @@ fn run_scenario(sparse: bool, n: usize) {
                 .map(|r| r.into_iter().map(|x| x as Real as f64).collect())
                 .collect()
         });
-        adam.step(borrow(engine), view(&g_flat)).unwrap();
+        // Told which rows can have a gradient (and some that have none): sparse Adam visits
+        // only those, dense Adam every row all the same.
+        let rows: Vec<u32> = (0..n)
+            .filter(|&r| r % 5 == 0 || g.iter().any(|grp| grp[r].iter().any(|&x| x != 0.0)))
+            .map(|r| r as u32)
+            .collect();
+        adam.step_rows(borrow(engine), view(&g_flat), Some(&rows))
+            .unwrap();
         reference.step(params, &g);
         for i in 0..6 {
             let want = flat(&params[i]);
@@ -420,11 +427,16 @@ fn position_rate_scales_with_extent_and_decays() {
 #[test]
 fn quaternions_are_renormalised() {
     let mut q = [2.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0];
-    normalize_quats(&mut q).unwrap();
+    let mut rows_only = q;
+    normalize_quats(&mut q, None).unwrap();
     assert_eq!(q[..4], [1.0, 0.0, 0.0, 0.0]);
     assert!(q[4..8].iter().all(|&v| (v - 0.5).abs() < 1e-6));
     assert_eq!(q[8..], [1.0, 0.0, 0.0, 0.0]);
-    assert!(normalize_quats(&mut q[..5]).is_err());
+    assert!(normalize_quats(&mut q[..5], None).is_err());
+    // Only the rows named: the first stays as it was.
+    normalize_quats(&mut rows_only, Some(&[1, 2])).unwrap();
+    assert_eq!(rows_only[..4], [2.0, 0.0, 0.0, 0.0]);
+    assert_eq!(rows_only[4..], q[4..]);
 }
 
 #[test]

@@ -1,5 +1,5 @@
 //! The backward pass with buffers reused across calls against fresh buffers: nothing of one
-//! pass may leak into the next, whatever the sizes.
+//! pass may leak into the next, whatever the sizes and whichever Gaussians are on screen.
 
 mod common;
 
@@ -12,14 +12,27 @@ use legslam_core::raster::{
 fn reused_buffers_give_what_fresh_ones_give() {
     let mut scratch = BackwardScratch::default();
     let mut out = Gradients::default();
-    // Large, then smaller, then without features, then larger again.
-    for (seed, n, w, h, k) in [
+    // Large, then smaller, then without features, then larger again; then the same Gaussians
+    // seen from three cameras that each see some of them (the rows to clear are the last
+    // view's, not a resize's).
+    let mut scenes: Vec<_> = [
         (1, 400, 64, 48, 6),
         (2, 50, 32, 24, 6),
         (3, 200, 48, 40, 0),
         (4, 600, 80, 60, 3),
-    ] {
-        let s = random_scene(seed, n, w, h, 1, k);
+    ]
+    .into_iter()
+    .map(|(seed, n, w, h, k)| (seed, random_scene(seed, n, w, h, 1, k)))
+    .collect();
+    let base = random_scene(5, 500, 64, 48, 1, 4);
+    for (i, shift) in [0.0, 0.6, -0.6].into_iter().enumerate() {
+        let mut s = base.clone();
+        s.w2c[(0, 3)] += shift;
+        scenes.push((6 + i as u64, s));
+    }
+    let mut visible = Vec::new();
+    for (seed, s) in scenes {
+        let (w, h, k) = (s.intr.width, s.intr.height, s.k);
         let opts = RenderOptions {
             sh_degree: 1,
             ..Default::default()
@@ -56,5 +69,13 @@ fn reused_buffers_give_what_fresh_ones_give() {
         assert_eq!(fresh.features, out.features, "scene {seed}");
         assert_eq!(fresh.means2d, out.means2d, "scene {seed}");
         assert_eq!(fresh.pose, out.pose, "scene {seed}");
+        assert_eq!(fresh.rows, out.rows, "scene {seed}");
+        if seed >= 6 {
+            visible.push(out.rows.clone());
+        }
     }
+    assert!(
+        visible[1].iter().any(|r| !visible[2].contains(r)),
+        "the shifted views should see different Gaussians"
+    );
 }

@@ -42,16 +42,16 @@ pub struct GradStats {
 
 impl GradStats {
     /// Adds one iteration's d(loss)/d(means2d) (pixels) of a `width` x `height` render for
-    /// the Gaussians that were visible, converted to normalised device coordinates.
-    pub fn add(&mut self, means2d: &[Real], radii: &[Real], width: usize, height: usize) {
-        self.resize(radii.len());
+    /// the Gaussians that were on screen (`visible`), converted to normalised device
+    /// coordinates.
+    pub fn add(&mut self, means2d: &[Real], visible: &[u32], width: usize, height: usize) {
+        self.resize(means2d.len() / 2);
         let (sx, sy) = (0.5 * width as Real, 0.5 * height as Real);
-        for (i, r) in radii.iter().enumerate() {
-            if *r > 0.0 {
-                let (gx, gy) = (means2d[2 * i] * sx, means2d[2 * i + 1] * sy);
-                self.sum[i] += (gx * gx + gy * gy).sqrt();
-                self.count[i] += 1;
-            }
+        for &i in visible {
+            let i = i as usize;
+            let (gx, gy) = (means2d[2 * i] * sx, means2d[2 * i + 1] * sy);
+            self.sum[i] += (gx * gx + gy * gy).sqrt();
+            self.count[i] += 1;
         }
     }
 

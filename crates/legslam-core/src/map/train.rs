@@ -15,7 +15,7 @@ use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
     DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
 };
-use crate::optim::{normalize_quats, Adam, AdamConfig, Groups};
+use crate::optim::{normalize_quats, rows_in, Adam, AdamConfig, Groups};
 use crate::raster::{
     backward_into, render, render_into, BackwardScratch, Camera, Gradients, ImageGrads,
     RenderOptions, Rendered, Simd,
@@ -463,6 +463,9 @@ impl Mapper {
             &mut sc.grads,
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
+        // Densification statistics from the colour pass's screen-space gradients.
+        self.stats.add(&sc.grads.means2d, &sc.grads.rows, w, h);
+        self.scratch.rendered = r;
         if with_features && !features_here {
             let feature_loss = self.feature_pass(ki, lf, report)?;
             terms.feature = feature_loss;
@@ -479,10 +482,10 @@ impl Mapper {
             self.keyframes[ki].exposure.step(&g, lr);
         }
         let grads = &self.scratch.grads;
-        self.stats.add(&grads.means2d, &r.radii, w, h);
-        self.scratch.rendered = r;
-        self.adam.step(self.map.params_mut(), Groups::from(grads))?;
-        normalize_quats(&mut self.map.quats)?;
+        let rows = &grads.rows[..];
+        self.adam
+            .step_rows(self.map.params_mut(), Groups::from(grads), Some(rows))?;
+        normalize_quats(&mut self.map.quats, self.config.adam.sparse.then_some(rows))?;
         self.iteration += 1;
         let interval = self.config.densify.interval;
         if interval > 0 && self.iteration % interval == 0 {
@@ -585,11 +588,14 @@ impl Mapper {
     }
 }
 
-/// `into += from`, group by group and the pose (the screen-space gradients are left alone).
+/// `into += from` over `from`'s rows, group by group, and the pose; `into.rows` becomes the
+/// union of both (the screen-space gradients are left alone).
 fn add_grads(into: &mut Gradients, from: &Gradients) {
+    const CHUNK: usize = 1024;
     for (a, b) in into.pose.iter_mut().zip(&from.pose) {
         *a += b;
     }
+    let n = into.opacity_logits.len();
     for (a, b) in [
         (&mut into.means, &from.means),
         (&mut into.log_scales, &from.log_scales),
@@ -598,10 +604,34 @@ fn add_grads(into: &mut Gradients, from: &Gradients) {
         (&mut into.sh, &from.sh),
         (&mut into.features, &from.features),
     ] {
-        a.par_chunks_mut(1 << 14)
-            .zip(b.par_chunks(1 << 14))
-            .for_each(|(a, b)| a.iter_mut().zip(b).for_each(|(x, y)| *x += y));
+        let w = a.len() / n.max(1);
+        if w == 0 {
+            continue;
+        }
+        a.par_chunks_mut(CHUNK * w).enumerate().for_each(|(ci, a)| {
+            let first = ci * CHUNK;
+            for &r in rows_in(&from.rows, first, a.len() / w) {
+                let r = r as usize;
+                let (a, b) = (&mut a[(r - first) * w..][..w], &b[r * w..][..w]);
+                a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+            }
+        });
     }
+    let mut rows = Vec::with_capacity(into.rows.len() + from.rows.len());
+    let (mut i, mut j) = (0, 0);
+    let (a, b) = (&into.rows, &from.rows);
+    while i < a.len() || j < b.len() {
+        let next = match (a.get(i), b.get(j)) {
+            (Some(&x), Some(&y)) => x.min(y),
+            (Some(&x), None) => x,
+            (None, Some(&y)) => y,
+            (None, None) => unreachable!(),
+        };
+        rows.push(next);
+        i += usize::from(a.get(i) == Some(&next));
+        j += usize::from(b.get(j) == Some(&next));
+    }
+    into.rows = rows;
 }
 
 // Every option of [`MapperConfig`] by name (see [`crate::options`]).

@@ -175,6 +175,17 @@ impl Adam {
         params: Groups<&mut [Real]>,
         grads: Groups<&[Real]>,
     ) -> Result<(), String> {
+        self.step_rows(params, grads, None)
+    }
+
+    /// [`Adam::step`], told that only the sorted rows `rows` can have a non-zero gradient (a
+    /// render's visible Gaussians): sparse Adam then visits only those, dense Adam every row.
+    pub fn step_rows(
+        &mut self,
+        params: Groups<&mut [Real]>,
+        grads: Groups<&[Real]>,
+        rows: Option<&[u32]>,
+    ) -> Result<(), String> {
         self.config.validate()?;
         let params = params.into_array();
         let grads = grads.into_array();
@@ -187,6 +198,13 @@ impl Adam {
                 ));
             }
         }
+        if let Some(&bad) = rows.and_then(|r| r.iter().find(|&&r| r as usize >= self.len)) {
+            return Err(format!(
+                "row {bad} is out of range for {} Gaussians",
+                self.len
+            ));
+        }
+        let rows = rows.filter(|_| self.config.sparse);
         let lrs = self.learning_rates().into_array();
         self.steps += 1;
         let c = self.config;
@@ -205,21 +223,30 @@ impl Adam {
                 .zip(self.m[i].par_chunks_mut(chunk))
                 .zip(self.v[i].par_chunks_mut(chunk))
                 .zip(g.par_chunks(chunk))
-                .for_each(|(((p, m), v), g)| {
-                    let rows = p
-                        .chunks_exact_mut(w)
-                        .zip(m.chunks_exact_mut(w))
-                        .zip(v.chunks_exact_mut(w))
-                        .zip(g.chunks_exact(w));
-                    for (((p, m), v), g) in rows {
+                .enumerate()
+                .for_each(|(ci, (((p, m), v), g))| {
+                    let mut update = |r: usize| {
+                        let g = &g[r * w..][..w];
                         if c.sparse && g.iter().all(|&x| x == 0.0) {
-                            continue;
+                            return;
                         }
+                        let (p, m, v) = (
+                            &mut p[r * w..][..w],
+                            &mut m[r * w..][..w],
+                            &mut v[r * w..][..w],
+                        );
                         for (((p, m), v), &g) in p.iter_mut().zip(m).zip(v).zip(g) {
                             *m = c.beta1 * *m + (1.0 - c.beta1) * g;
                             *v = c.beta2 * *v + (1.0 - c.beta2) * g * g;
                             *p -= step_size * *m / (v.sqrt() * inv_bias2_sqrt + c.eps);
                         }
+                    };
+                    let first = ci * ROWS_PER_TASK;
+                    match rows {
+                        Some(rows) => rows_in(rows, first, g.len() / w)
+                            .iter()
+                            .for_each(|&r| update(r as usize - first)),
+                        None => (0..g.len() / w).for_each(update),
                     }
                 });
         }
@@ -284,23 +311,39 @@ impl Adam {
 }
 
 /// Rescales each (w, x, y, z) quaternion to unit length, as needed after every step; a zero or
-/// non-finite one becomes the identity (1, 0, 0, 0).
-pub fn normalize_quats(quats: &mut [Real]) -> Result<(), String> {
+/// non-finite one becomes the identity (1, 0, 0, 0). With `rows` (sorted), only those.
+pub fn normalize_quats(quats: &mut [Real], rows: Option<&[u32]>) -> Result<(), String> {
     if quats.len() % 4 != 0 {
         return Err(format!(
             "quats must hold 4 values per Gaussian, got {} values",
             quats.len()
         ));
     }
-    quats.par_chunks_mut(4 * ROWS_PER_TASK).for_each(|c| {
-        for q in c.chunks_exact_mut(4) {
-            let norm = q.iter().map(|v| v * v).sum::<Real>().sqrt();
-            if norm > 0.0 && norm.is_finite() {
-                q.iter_mut().for_each(|v| *v /= norm);
-            } else {
-                q.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
-            }
+    let normalize = |q: &mut [Real]| {
+        let norm = q.iter().map(|v| v * v).sum::<Real>().sqrt();
+        if norm > 0.0 && norm.is_finite() {
+            q.iter_mut().for_each(|v| *v /= norm);
+        } else {
+            q.copy_from_slice(&[1.0, 0.0, 0.0, 0.0]);
         }
-    });
+    };
+    quats
+        .par_chunks_mut(4 * ROWS_PER_TASK)
+        .enumerate()
+        .for_each(|(ci, c)| match rows {
+            Some(rows) => {
+                let first = ci * ROWS_PER_TASK;
+                for &r in rows_in(rows, first, c.len() / 4) {
+                    normalize(&mut c[(r as usize - first) * 4..][..4]);
+                }
+            }
+            None => c.chunks_exact_mut(4).for_each(normalize),
+        });
     Ok(())
+}
+
+/// The entries of the sorted list `rows` in [first, first + len).
+pub(crate) fn rows_in(rows: &[u32], first: usize, len: usize) -> &[u32] {
+    let at = |x: usize| rows.partition_point(|&r| (r as usize) < x);
+    &rows[at(first)..at(first + len)]
 }

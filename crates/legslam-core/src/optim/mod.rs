@@ -9,6 +9,7 @@ mod adam;
 mod groups;
 mod small_adam;
 
+pub(crate) use adam::rows_in;
 pub use adam::{normalize_quats, Adam, AdamConfig, ExpDecay};
 pub use groups::Groups;
 pub use small_adam::SmallAdam;

@@ -8,7 +8,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{for_each_group, TileRect, TILE_LANES};
+use super::composite::{for_each_group, prefetch_ahead, TileRect, TILE_LANES};
 use super::forward::split_chunks;
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 use super::lanes::Avx2;
@@ -17,6 +17,7 @@ use super::math::{V2, V3};
 use super::project::{backward_one, geometry, ParamGrads, Pinhole, ScreenGrads};
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
+use crate::optim::rows_in;
 use crate::Real;
 
 /// The screen-space gradient slots of a (tile, Gaussian) pair, ahead of its K feature slots.
@@ -148,18 +149,29 @@ pub fn backward_into(
     }
     let (pair_grads, g_start, g_pairs) = (&pair_grads[..], &g_start[..], &g_pairs[..]);
 
+    // Only the rows of Gaussians on screen can be non-zero: clear the rows the last pass
+    // touched (or everything, when the map changed size) instead of the whole map's.
     let nc = g.sh_coeffs * 3;
-    zeroed(&mut out.means, n * 3);
-    zeroed(&mut out.log_scales, n * 3);
-    zeroed(&mut out.quats, n * 4);
-    zeroed(&mut out.opacity_logits, n);
-    zeroed(&mut out.sh, n * nc);
-    zeroed(&mut out.features, n * g.num_features);
-    zeroed(&mut out.means2d, n * 2);
+    let kf = g.num_features;
+    let widths = [3, 3, 4, 1, nc, kf, 2];
+    let mut stale = std::mem::take(&mut out.rows);
+    if out
+        .arrays_mut()
+        .iter()
+        .zip(widths)
+        .any(|(v, w)| v.len() != n * w)
+    {
+        for (v, w) in out.arrays_mut().into_iter().zip(widths) {
+            zeroed(v, n * w);
+        }
+        stale.clear();
+    }
+    let rows: Vec<u32> = (0..n as u32)
+        .filter(|&i| rect_area(&st.rects[i as usize]) > 0)
+        .collect();
     out.pose = [0.0; 6];
     const CHUNK: usize = 1024;
     let nch = n.div_ceil(CHUNK);
-    let kf = g.num_features;
     let chunks: Vec<_> = split_chunks(&mut out.means, CHUNK * 3, nch)
         .into_iter()
         .zip(split_chunks(&mut out.log_scales, CHUNK * 3, nch))
@@ -174,13 +186,26 @@ pub fn backward_into(
     let pose_parts: Vec<[Real; 6]> = chunks
         .into_par_iter()
         .map(|(c, ((((((gm, gs), gq), go), gsh), gfeat), gm2))| {
-            let mut pose = [0.0; 6];
-            for li in 0..gm.len() / 3 {
-                let i = c * CHUNK + li;
-                let pairs = &g_pairs[g_start[i]..g_start[i + 1]];
-                if pairs.is_empty() {
-                    continue;
+            let first = c * CHUNK;
+            for &i in rows_in(&stale, first, CHUNK) {
+                let li = i as usize - first;
+                let parts: [(&mut [Real], usize); 7] = [
+                    (gm, 3),
+                    (gs, 3),
+                    (gq, 4),
+                    (go, 1),
+                    (gsh, nc),
+                    (gfeat, kf),
+                    (gm2, 2),
+                ];
+                for (v, w) in parts {
+                    v[li * w..(li + 1) * w].fill(0.0);
                 }
+            }
+            let mut pose = [0.0; 6];
+            for &i in rows_in(&rows, first, CHUNK) {
+                let (i, li) = (i as usize, i as usize - first);
+                let pairs = &g_pairs[g_start[i]..g_start[i + 1]];
                 let mut sg = ScreenGrads::default();
                 for &pr in pairs {
                     let s = &pair_grads[pr as usize * stride..][..stride];
@@ -230,6 +255,7 @@ pub fn backward_into(
             *p += v;
         }
     }
+    out.rows = rows;
     Ok(())
 }
 
@@ -345,6 +371,7 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
     let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
     let gf = job.grads.features.filter(|_| k > 0);
     for (j, &gi) in list[..walked].iter().enumerate() {
+        prefetch_ahead(list, j, &st.splats, job.g.features, k);
         let s = &st.splats[gi as usize];
         let f = &job.g.features[gi as usize * k..][..k];
         let slot = &mut slots[j * stride..][..stride];

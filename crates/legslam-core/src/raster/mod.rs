@@ -227,4 +227,21 @@ pub struct Gradients {
     pub means2d: Vec<Real>,
     /// With respect to the left twist (rho, phi) of the world-to-camera pose.
     pub pose: [Real; 6],
+    /// The Gaussians on screen, in order: every other Gaussian's rows are zero in every group.
+    pub rows: Vec<u32>,
+}
+
+impl Gradients {
+    /// Every per-Gaussian array: the parameter groups, then `means2d`.
+    pub fn arrays_mut(&mut self) -> [&mut Vec<Real>; 7] {
+        [
+            &mut self.means,
+            &mut self.log_scales,
+            &mut self.quats,
+            &mut self.opacity_logits,
+            &mut self.sh,
+            &mut self.features,
+            &mut self.means2d,
+        ]
+    }
 }
