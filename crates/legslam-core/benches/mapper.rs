@@ -99,6 +99,7 @@ fn main() {
         ..Default::default()
     };
     config.grow.stride = 2;
+    config.adam.sparse = std::env::var("LEGSLAM_BENCH_DENSE_ADAM").is_err();
     let mut mapper = Mapper::new(config).unwrap();
     let intr = Intrinsics::from_array([F, F, 320.0, 240.0], W, H);
     let mut rng = Rng::new(1);

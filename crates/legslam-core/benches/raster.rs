@@ -162,7 +162,7 @@ fn pass(k: usize, simd: Simd, backward: bool) -> impl FnMut() {
 }
 
 fn main() {
-    let r = render(&gaussians(64), &camera(), &RenderOptions::default()).unwrap();
+    let r = render(&gaussians(0), &camera(), &RenderOptions::default()).unwrap();
     eprintln!(
         "640x480: {} tile-Gaussian pairs, {} of {} Gaussians on screen",
         r.num_pairs(),

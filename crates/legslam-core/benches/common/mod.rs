@@ -1,6 +1,8 @@
 //! A small harness for benchmarks that compare implementations: the variants of a case run
 //! alternately, sample by sample, so that a machine whose speed drifts (a shared machine
-//! swings by up to ~1.4x from hour to hour) slows them alike; medians and ratios are printed.
+//! swings by up to ~1.4x from hour to hour) slows them alike; medians and ratios are printed,
+//! of wall time and of CPU time (all threads' time on a core: a loaded machine's waits for a
+//! core do not count in it).
 
 use std::time::Instant;
 
@@ -34,25 +36,59 @@ pub fn compare(case: &str, samples: usize, variants: &mut [Variant]) -> Vec<f64>
     if !selected(case) {
         return Vec::new();
     }
+    // LEGSLAM_BENCH_VARIANT runs one variant alone (e.g. under a profiler).
+    if let Ok(only) = std::env::var("LEGSLAM_BENCH_VARIANT") {
+        for v in variants.iter_mut().filter(|v| v.name == only) {
+            for _ in 0..samples.max(1) {
+                (v.run)();
+            }
+        }
+        return Vec::new();
+    }
     for v in variants.iter_mut() {
         (v.run)();
     }
-    let mut times = vec![Vec::with_capacity(samples); variants.len()];
+    let mut wall = vec![Vec::with_capacity(samples); variants.len()];
+    let mut cpu = wall.clone();
     for _ in 0..samples {
-        for (v, t) in variants.iter_mut().zip(&mut times) {
-            let start = Instant::now();
+        for ((v, w), c) in variants.iter_mut().zip(&mut wall).zip(&mut cpu) {
+            let (start, cpu_start) = (Instant::now(), cpu_ms());
             (v.run)();
-            t.push(1e3 * start.elapsed().as_secs_f64());
+            w.push(1e3 * start.elapsed().as_secs_f64());
+            c.push(cpu_ms() - cpu_start);
         }
     }
-    let medians: Vec<f64> = times.into_iter().map(median).collect();
+    let wall: Vec<f64> = wall.into_iter().map(median).collect();
+    let cpu: Vec<f64> = cpu.into_iter().map(median).collect();
     let cells: Vec<String> = variants
         .iter()
-        .zip(&medians)
-        .map(|(v, m)| format!("{} {:8.1} ms (x{:.2})", v.name, m, medians[0] / m))
+        .enumerate()
+        .map(|(i, v)| {
+            format!(
+                "{} {:7.1} ms (x{:.2}), cpu {:7.1} ms (x{:.2})",
+                v.name,
+                wall[i],
+                wall[0] / wall[i],
+                cpu[i],
+                cpu[0] / cpu[i]
+            )
+        })
         .collect();
-    println!("{case:<28} {}", cells.join("   "));
-    medians
+    println!("{case:<24} {}", cells.join("   "));
+    wall
+}
+
+/// CPU time of every thread of this process so far, in ms (Linux; 0 elsewhere).
+pub fn cpu_ms() -> f64 {
+    let Ok(tasks) = std::fs::read_dir("/proc/self/task") else {
+        return 0.0;
+    };
+    tasks
+        .flatten()
+        .filter_map(|t| std::fs::read_to_string(t.path().join("schedstat")).ok())
+        .filter_map(|s| s.split_whitespace().next()?.parse::<f64>().ok())
+        .sum::<f64>()
+        / 1e6
 }
 
 /// Samples per case: `LEGSLAM_BENCH_SAMPLES`, else `default`.
