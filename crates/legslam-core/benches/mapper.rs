@@ -10,6 +10,9 @@
 //! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
 //! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20).
 
+#[path = "common/mod.rs"]
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -74,11 +77,6 @@ fn feature_grid(rng: &mut Rng, k: usize) -> FeatureGrid {
     FeatureGrid::new(data, 16, 16, k).unwrap()
 }
 
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn main() {
     let dir = data_dir();
     if !dir.is_dir() {
@@ -126,19 +124,17 @@ fn main() {
     } else {
         &[("portable", false)]
     };
-    let mut phases = vec![[(); 5].map(|_| Vec::new()); variants.len()];
+    let mut phases = vec![[(); 6].map(|_| Vec::new()); variants.len()];
     pool.install(|| {
         for _ in 0..iters {
             for (&(_, simd), times) in variants.iter().zip(&mut phases) {
                 mapper.config.simd = simd;
-                let t = Instant::now();
+                let (t, cpu) = (Instant::now(), common::cpu_ms());
                 let r = mapper.train(1).unwrap();
                 let total = t.elapsed().as_secs_f64();
-                for (p, v) in
-                    times
-                        .iter_mut()
-                        .zip([total, r.render_s, r.loss_s, r.backward_s, r.step_s])
-                {
+                let cpu = 1e-3 * (common::cpu_ms() - cpu);
+                let all = [total, cpu, r.render_s, r.loss_s, r.backward_s, r.step_s];
+                for (p, v) in times.iter_mut().zip(all) {
                     p.push(1e3 * v);
                 }
             }
@@ -150,10 +146,10 @@ fn main() {
         variants[0].0
     );
     let medians: Vec<Vec<f64>> = phases
-        .iter_mut()
-        .map(|p| p.iter_mut().map(|v| median(v)).collect())
+        .iter()
+        .map(|p| p.iter().map(|v| common::median(v.clone())).collect())
         .collect();
-    for (i, name) in ["total", "render", "loss", "backward", "step"]
+    for (i, name) in ["total", "cpu", "render", "loss", "backward", "step"]
         .iter()
         .enumerate()
     {

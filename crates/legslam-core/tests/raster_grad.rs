@@ -34,20 +34,22 @@ const ALL: Which = Which {
     features: true,
 };
 
-fn weights(s: &Scene, which: Which, seed: u64) -> Weights {
+/// Features are rendered `scale` times coarser than the other images.
+fn weights(s: &Scene, which: Which, seed: u64, scale: usize) -> Weights {
     let mut rng = Rng::new(seed);
     let npix = s.intr.width * s.intr.height;
+    let feature_pix = (s.intr.width / scale) * (s.intr.height / scale);
     let mut gen = |on: bool, n: usize| on.then(|| (0..n).map(|_| rng.normal()).collect());
     Weights {
         color: gen(which.color, npix * 3),
         depth: gen(which.depth, npix),
         alpha: gen(which.alpha, npix),
-        features: gen(which.features && s.k > 0, npix * s.k),
+        features: gen(which.features && s.k > 0, feature_pix * s.k),
     }
 }
 
-fn loss(s: &Scene, deg: usize, w: &Weights) -> f64 {
-    let r = render(&s.gaussians(), &s.camera(), &opts(deg)).unwrap();
+fn loss(s: &Scene, deg: usize, scale: usize, w: &Weights) -> f64 {
+    let r = render(&s.gaussians(), &s.camera(), &opts(deg, scale)).unwrap();
     let dot = |a: &[f64], b: &Option<Vec<f64>>| {
         b.as_ref()
             .map_or(0.0, |b| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>())
@@ -58,15 +60,16 @@ fn loss(s: &Scene, deg: usize, w: &Weights) -> f64 {
         + dot(&r.features, &w.features)
 }
 
-fn opts(deg: usize) -> RenderOptions {
+fn opts(deg: usize, feature_scale: usize) -> RenderOptions {
     RenderOptions {
         sh_degree: deg,
+        feature_scale,
         ..Default::default()
     }
 }
 
-fn analytic(s: &Scene, deg: usize, w: &Weights) -> Gradients {
-    let r = render(&s.gaussians(), &s.camera(), &opts(deg)).unwrap();
+fn analytic(s: &Scene, deg: usize, scale: usize, w: &Weights) -> Gradients {
+    let r = render(&s.gaussians(), &s.camera(), &opts(deg, scale)).unwrap();
     let grads = ImageGrads {
         color: w.color.as_deref(),
         depth: w.depth.as_deref(),
@@ -86,8 +89,8 @@ fn assert_close(what: &str, a: f64, fd: f64) {
 
 /// Checks every entry of every parameter group and the pose; returns the largest gradient
 /// magnitude seen per group, so that callers can assert that a group is reached at all.
-fn check_all(s: &Scene, deg: usize, w: &Weights) -> [f64; 7] {
-    let g = analytic(s, deg, w);
+fn check_all(s: &Scene, deg: usize, scale: usize, w: &Weights) -> [f64; 7] {
+    let g = analytic(s, deg, scale, w);
     let mut largest = [0.0f64; 7];
     type Field = fn(&mut Scene) -> &mut Vec<f64>;
     let groups: [(&str, Field, &Vec<f64>); 6] = [
@@ -108,16 +111,17 @@ fn check_all(s: &Scene, deg: usize, w: &Weights) -> [f64; 7] {
         for j in 0..grad.len() {
             let v = field(&mut p)[j];
             field(&mut p)[j] = v + H;
-            let lp = loss(&p, deg, w);
+            let lp = loss(&p, deg, scale, w);
             field(&mut p)[j] = v - H;
-            let lm = loss(&p, deg, w);
+            let lm = loss(&p, deg, scale, w);
             field(&mut p)[j] = v;
             assert_close(&format!("{name}[{j}]"), grad[j], (lp - lm) / (2.0 * H));
             largest[gi] = largest[gi].max(grad[j].abs());
         }
     }
     for a in 0..6 {
-        let fd = (loss(&perturb_pose(s, a, H), deg, w) - loss(&perturb_pose(s, a, -H), deg, w))
+        let fd = (loss(&perturb_pose(s, a, H), deg, scale, w)
+            - loss(&perturb_pose(s, a, -H), deg, scale, w))
             / (2.0 * H);
         assert_close(&format!("pose[{a}]"), g.pose[a], fd);
         largest[6] = largest[6].max(g.pose[a].abs());
@@ -145,7 +149,7 @@ fn gradients_on_random_scenes_all_outputs_all_sh_degrees() {
     for seed in 0..4u64 {
         let deg = seed as usize;
         let s = random_scene(100 + seed, 20, 36, 28, deg, 4);
-        let largest = check_all(&s, deg, &weights(&s, ALL, seed));
+        let largest = check_all(&s, deg, 1, &weights(&s, ALL, seed, 1));
         assert!(
             largest.iter().all(|v| *v > 0.0),
             "every group gets a gradient"
@@ -157,7 +161,7 @@ fn gradients_on_random_scenes_all_outputs_all_sh_degrees() {
 fn gradients_on_hard_scenes() {
     for seed in 0..3u64 {
         let s = hard_scene(200 + seed, 40, 30, 2, 3);
-        check_all(&s, 2, &weights(&s, ALL, seed));
+        check_all(&s, 2, 1, &weights(&s, ALL, seed, 1));
     }
 }
 
@@ -202,7 +206,7 @@ fn each_output_alone_reaches_geometry_and_opacity() {
     ];
     let s = random_scene(300, 12, 32, 24, 1, 3);
     for (name, which) in cases {
-        let largest = check_all(&s, 1, &weights(&s, which, 7));
+        let largest = check_all(&s, 1, 1, &weights(&s, which, 7, 1));
         for (gi, group) in ["means", "log_scales", "quats", "opacity_logits"]
             .iter()
             .enumerate()
@@ -210,5 +214,29 @@ fn each_output_alone_reaches_geometry_and_opacity() {
             assert!(largest[gi] > 1e-6, "{name} gradient does not reach {group}");
         }
         assert!(largest[6] > 1e-6, "{name} gradient does not reach the pose");
+    }
+}
+
+/// Features rendered 2 and 3 times coarser (odd sizes, partial tiles) from the same projection:
+/// their gradient reaches every group through the coarse layer, alone and with the others.
+#[test]
+fn gradients_with_features_in_a_coarser_layer() {
+    let features_only = Which {
+        color: false,
+        depth: false,
+        alpha: false,
+        features: true,
+    };
+    for (seed, scale) in [(400u64, 2), (401, 3)] {
+        let s = random_scene(seed, 20, 37, 29, 1, 3);
+        check_all(&s, 1, scale, &weights(&s, ALL, seed, scale));
+        let largest = check_all(&s, 1, scale, &weights(&s, features_only, seed, scale));
+        for (gi, group) in ["means", "log_scales", "quats", "opacity_logits"]
+            .iter()
+            .enumerate()
+        {
+            assert!(largest[gi] > 1e-6, "coarse features do not reach {group}");
+        }
+        assert!(largest[5] > 1e-6 && largest[6] > 1e-6);
     }
 }

@@ -116,3 +116,54 @@ fn render_is_deterministic() {
     assert_eq!(a.color, b.color);
     assert_eq!(a.features, b.features);
 }
+
+/// Features asked for at a coarser scale come from the same projection but match the plain
+/// reference of an image that many times smaller (intrinsics scaled about pixel centres); the
+/// other images stay the full-size reference's. (Sizes divide by the scale: otherwise the
+/// smaller image's field of view, which clamps the projection's Jacobian, is a fraction of a
+/// pixel narrower than the main one's, which the coarse layer follows.)
+#[test]
+fn features_at_a_coarser_scale_match_the_smaller_images_reference() {
+    for (seed, scale) in [(21u64, 2usize), (22, 3), (23, 4)] {
+        let scene = random_scene(seed, 300, 72, 48, 1, 6);
+        let cfg = RasterConfig::default();
+        let opts = RenderOptions {
+            sh_degree: 1,
+            feature_scale: scale,
+            ..Default::default()
+        };
+        let fast = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
+        let full = reference_render(&scene, 1, &cfg);
+        let mut small = scene.clone();
+        let (i, s) = (&scene.intr, scale as f64);
+        small.intr.fx = i.fx / s;
+        small.intr.fy = i.fy / s;
+        small.intr.cx = (i.cx + 0.5) / s - 0.5;
+        small.intr.cy = (i.cy + 0.5) / s - 0.5;
+        small.intr.width = i.width / scale;
+        small.intr.height = i.height / scale;
+        let coarse = reference_render(&small, 1, &cfg);
+        assert_eq!(
+            (fast.feature_width, fast.feature_height),
+            (small.intr.width, small.intr.height)
+        );
+        let (tol, max_flipped) = if cfg!(feature = "f64") {
+            (1e-9, 0.0)
+        } else {
+            (2e-4, 0.003)
+        };
+        for (name, a, b) in [
+            ("color", &fast.color, &full.color),
+            ("alpha", &fast.alpha, &full.alpha),
+            ("features", &fast.features, &coarse.features),
+        ] {
+            let (worst, flipped) = compare(a, b, tol);
+            assert!(
+                flipped <= max_flipped && worst < 0.05,
+                "scale {scale} {name}: {:.3}% off by more than {tol}, worst {worst}",
+                100.0 * flipped
+            );
+        }
+        assert!(fast.features.iter().any(|v| v.abs() > 0.1));
+    }
+}

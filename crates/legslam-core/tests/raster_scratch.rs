@@ -5,7 +5,8 @@ mod common;
 
 use common::{random_scene, Rng};
 use legslam_core::raster::{
-    backward, backward_into, render, BackwardScratch, Gradients, ImageGrads, RenderOptions,
+    backward, backward_into, render, render_into, BackwardScratch, Gradients, ImageGrads,
+    RenderOptions, Rendered,
 };
 
 #[test]
@@ -31,16 +32,26 @@ fn reused_buffers_give_what_fresh_ones_give() {
         scenes.push((6 + i as u64, s));
     }
     let mut visible = Vec::new();
+    // Features alternate between the main layer and a coarser one of their own.
+    let mut reused = Rendered::default();
     for (seed, s) in scenes {
         let (w, h, k) = (s.intr.width, s.intr.height, s.k);
         let opts = RenderOptions {
             sh_degree: 1,
+            feature_scale: 1 + seed as usize % 2,
             ..Default::default()
         };
         let r = render(&s.gaussians(), &s.camera(), &opts).unwrap();
+        render_into(&s.gaussians(), &s.camera(), &opts, &mut reused).unwrap();
+        assert_eq!(
+            (&r.color, &r.depth, &r.features),
+            (&reused.color, &reused.depth, &reused.features),
+            "scene {seed}: a reused render"
+        );
         let mut rng = Rng::new(seed + 100);
         let mut noise = |len: usize| -> Vec<_> { (0..len).map(|_| rng.normal() as _).collect() };
-        let (dc, dd, df) = (noise(w * h * 3), noise(w * h), noise(w * h * k));
+        let feature_pix = r.feature_width * r.feature_height;
+        let (dc, dd, df) = (noise(w * h * 3), noise(w * h), noise(feature_pix * k));
         let grads = ImageGrads {
             color: Some(&dc),
             depth: Some(&dd),
@@ -51,7 +62,7 @@ fn reused_buffers_give_what_fresh_ones_give() {
         backward_into(
             &s.gaussians(),
             &s.camera(),
-            &r,
+            &reused,
             &grads,
             &mut scratch,
             &mut out,

@@ -4,6 +4,9 @@
 //! of wall time and of CPU time (all threads' time on a core: a loaded machine's waits for a
 //! core do not count in it).
 
+// Each bench uses the parts it needs.
+#![allow(dead_code)]
+
 use std::time::Instant;
 
 /// One variant of a case: a name and what to time.
@@ -19,7 +22,7 @@ pub fn variant<'a>(name: &'a str, run: impl FnMut() + 'a) -> Variant<'a> {
     }
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     let n = v.len();
     if n % 2 == 1 {

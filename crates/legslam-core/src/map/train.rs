@@ -4,8 +4,6 @@
 
 use std::time::Instant;
 
-use rayon::prelude::*;
-
 use super::densify::{densify, DensifyConfig, GradStats};
 use super::grow::{assign_features, grow, GrowConfig, RenderedView};
 use super::pose::step_pose;
@@ -15,7 +13,7 @@ use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
     DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
 };
-use crate::optim::{normalize_quats, rows_in, Adam, AdamConfig, Groups};
+use crate::optim::{normalize_quats, Adam, AdamConfig, Groups};
 use crate::raster::{
     backward_into, render, render_into, BackwardScratch, Camera, Gradients, ImageGrads,
     RenderOptions, Rendered, Simd,
@@ -163,12 +161,10 @@ struct Scratch {
     /// The render under the keyframe's exposure.
     exposed: Vec<Real>,
     backward: BackwardScratch,
-    /// The colour pass's render, and the features-only pass's.
+    /// The iteration's render.
     rendered: Rendered,
-    feature_rendered: Rendered,
-    /// Gradients of the colour pass, and of the features-only pass.
+    /// Its gradients.
     grads: Gradients,
-    feature_grads: Gradients,
 }
 
 fn camera(pose: &Pose, intr: Intrinsics) -> Result<Camera, String> {
@@ -380,8 +376,9 @@ impl Mapper {
         let li = coarsest
             .saturating_sub(kf.uses / c.uses_per_level.max(1))
             .max(c.finest_level.min(coarsest));
-        // Features are rendered `feature_level_offset` levels coarser: their target is an
-        // upsampled patch grid, and K channels cost K times a colour channel.
+        // Features are rendered `feature_level_offset` levels coarser, from the colour pass's
+        // projection: their target is an upsampled patch grid, and K channels cost K times a
+        // colour channel.
         let lf = (li + c.feature_level_offset).min(coarsest);
         kf.uses += 1;
         let kf = &self.keyframes[ki];
@@ -389,30 +386,31 @@ impl Mapper {
         let level = &kf.levels[li];
         let intr = level.intrinsics;
         let (w, h) = (intr.width, intr.height);
-        let features_here = with_features && lf == li;
 
         let t = Instant::now();
         let cam = camera(&kf.pose, intr)?;
+        let opts = RenderOptions {
+            feature_scale: 1 << (lf - li),
+            ..self.options(true, with_features)
+        };
         // The render's buffers are the scratch's, taken for the iteration and put back.
         let mut r = std::mem::take(&mut self.scratch.rendered);
-        render_into(
-            &self.map.view(),
-            &cam,
-            &self.options(true, features_here),
-            &mut r,
-        )?;
+        render_into(&self.map.view(), &cam, &opts, &mut r)?;
         report.render_s += t.elapsed().as_secs_f64();
 
         let t = Instant::now();
         // Image-sized buffers reused across iterations; the loss overwrites the gradients.
         let k = self.map.num_features;
+        let (fw, fh) = (r.feature_width, r.feature_height);
+        let target = kf.levels[lf].intrinsics;
+        debug_assert!(!with_features || (fw, fh) == (target.width, target.height));
         let sc = &mut self.scratch;
         sc.d_color.resize(w * h * 3, 0.0);
         sc.d_depth.resize(w * h, 0.0);
         sc.d_feat
-            .resize(if features_here { w * h * k } else { 0 }, 0.0);
-        if let (true, Some(g)) = (features_here, kf.features.as_ref()) {
-            g.upsample_into(w, h, &mut sc.target);
+            .resize(if with_features { fw * fh * k } else { 0 }, 0.0);
+        if let (true, Some(g)) = (with_features, kf.features.as_ref()) {
+            g.upsample_into(fw, fh, &mut sc.target);
         }
         // The loss sees the render as this keyframe's exposure makes it (the first keyframe's
         // exposure is the map's own).
@@ -430,19 +428,19 @@ impl Mapper {
                 rendered: &r.depth,
                 target: &level.depth,
             }),
-            features: features_here.then(|| FeatureInputs {
+            features: with_features.then(|| FeatureInputs {
                 rendered: &r.features,
                 target: &sc.target,
                 channels: k,
                 mask: None,
             }),
         };
-        let mut terms = self.loss.evaluate(
+        let terms = self.loss.evaluate(
             &inputs,
             LossGrads {
                 color: &mut sc.d_color,
                 depth: Some(&mut sc.d_depth),
-                features: features_here.then_some(&mut sc.d_feat[..]),
+                features: with_features.then_some(&mut sc.d_feat[..]),
             },
         )?;
         let exposure_grad = exposed.then(|| kf.exposure.backward(&r.color, &mut sc.d_color));
@@ -457,22 +455,15 @@ impl Mapper {
                 color: Some(&sc.d_color),
                 depth: Some(&sc.d_depth),
                 alpha: None,
-                features: features_here.then_some(&sc.d_feat[..]),
+                features: with_features.then_some(&sc.d_feat[..]),
             },
             &mut sc.backward,
             &mut sc.grads,
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
-        // Densification statistics from the colour pass's screen-space gradients.
+        // Densification statistics from the main layer's screen-space gradients.
         self.stats.add(&sc.grads.means2d, &sc.grads.rows, w, h);
         self.scratch.rendered = r;
-        if with_features && !features_here {
-            let feature_loss = self.feature_pass(ki, lf, report)?;
-            terms.feature = feature_loss;
-            terms.total += f64::from(self.config.loss.feature) * feature_loss;
-            let sc = &mut self.scratch;
-            add_grads(&mut sc.grads, &sc.feature_grads);
-        }
         report.last = terms;
 
         let t = Instant::now();
@@ -510,60 +501,6 @@ impl Mapper {
         kf.pose = step_pose(&mut kf.pose_adam, &kf.pose, &self.scratch.grads.pose, lr);
     }
 
-    /// Renders only the features of keyframe `ki` at pyramid level `lf`; returns the feature
-    /// term and leaves its gradients in `scratch.feature_grads`.
-    fn feature_pass(
-        &mut self,
-        ki: usize,
-        lf: usize,
-        report: &mut TrainReport,
-    ) -> Result<f64, String> {
-        let kf = &self.keyframes[ki];
-        let grid = kf.features.as_ref().ok_or("the keyframe has no features")?;
-        let intr = kf.levels[lf].intrinsics;
-        let (w, h, k) = (intr.width, intr.height, self.map.num_features);
-        let t = Instant::now();
-        let cam = camera(&kf.pose, intr)?;
-        let opts = RenderOptions {
-            color: false,
-            depth: false,
-            alpha: false,
-            ..self.options(false, true)
-        };
-        let mut r = std::mem::take(&mut self.scratch.feature_rendered);
-        render_into(&self.map.view(), &cam, &opts, &mut r)?;
-        report.render_s += t.elapsed().as_secs_f64();
-
-        let t = Instant::now();
-        let sc = &mut self.scratch;
-        grid.upsample_into(w, h, &mut sc.target);
-        sc.d_feat.resize(w * h * k, 0.0);
-        let inputs = FeatureInputs {
-            rendered: &r.features,
-            target: &sc.target,
-            channels: k,
-            mask: None,
-        };
-        let loss = self.loss.feature_term(&inputs, &mut sc.d_feat)?;
-        report.loss_s += t.elapsed().as_secs_f64();
-
-        let t = Instant::now();
-        backward_into(
-            &self.map.view(),
-            &cam,
-            &r,
-            &ImageGrads {
-                features: Some(&sc.d_feat),
-                ..Default::default()
-            },
-            &mut sc.backward,
-            &mut sc.feature_grads,
-        )?;
-        report.backward_s += t.elapsed().as_secs_f64();
-        self.scratch.feature_rendered = r;
-        Ok(loss)
-    }
-
     /// Densifies, then prunes; the optimiser's rows follow the map's.
     fn refine(&mut self, report: &mut TrainReport) -> Result<(), String> {
         let extent = self.extent();
@@ -586,52 +523,6 @@ impl Mapper {
         self.stats.reset(self.map.len());
         Ok(())
     }
-}
-
-/// `into += from` over `from`'s rows, group by group, and the pose; `into.rows` becomes the
-/// union of both (the screen-space gradients are left alone).
-fn add_grads(into: &mut Gradients, from: &Gradients) {
-    const CHUNK: usize = 1024;
-    for (a, b) in into.pose.iter_mut().zip(&from.pose) {
-        *a += b;
-    }
-    let n = into.opacity_logits.len();
-    for (a, b) in [
-        (&mut into.means, &from.means),
-        (&mut into.log_scales, &from.log_scales),
-        (&mut into.quats, &from.quats),
-        (&mut into.opacity_logits, &from.opacity_logits),
-        (&mut into.sh, &from.sh),
-        (&mut into.features, &from.features),
-    ] {
-        let w = a.len() / n.max(1);
-        if w == 0 {
-            continue;
-        }
-        a.par_chunks_mut(CHUNK * w).enumerate().for_each(|(ci, a)| {
-            let first = ci * CHUNK;
-            for &r in rows_in(&from.rows, first, a.len() / w) {
-                let r = r as usize;
-                let (a, b) = (&mut a[(r - first) * w..][..w], &b[r * w..][..w]);
-                a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
-            }
-        });
-    }
-    let mut rows = Vec::with_capacity(into.rows.len() + from.rows.len());
-    let (mut i, mut j) = (0, 0);
-    let (a, b) = (&into.rows, &from.rows);
-    while i < a.len() || j < b.len() {
-        let next = match (a.get(i), b.get(j)) {
-            (Some(&x), Some(&y)) => x.min(y),
-            (Some(&x), None) => x,
-            (None, Some(&y)) => y,
-            (None, None) => unreachable!(),
-        };
-        rows.push(next);
-        i += usize::from(a.get(i) == Some(&next));
-        j += usize::from(b.get(j) == Some(&next));
-    }
-    into.rows = rows;
 }
 
 // Every option of [`MapperConfig`] by name (see [`crate::options`]).

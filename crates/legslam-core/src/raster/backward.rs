@@ -9,12 +9,12 @@
 use rayon::prelude::*;
 
 use super::composite::{for_each_group, prefetch_ahead, TileRect, TILE_LANES};
-use super::forward::split_chunks;
+use super::forward::{split_chunks, Layer};
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 use super::lanes::Avx2;
 use super::lanes::{Lanes, Portable, Simd, LANES};
 use super::math::{V2, V3};
-use super::project::{backward_one, geometry, ParamGrads, Pinhole, ScreenGrads};
+use super::project::{backward_one, conic_to_cov_grad, geometry, ParamGrads, Pinhole, ScreenGrads};
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
 use crate::optim::rows_in;
@@ -55,7 +55,15 @@ fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> 
 /// megabytes per iteration.
 #[derive(Default)]
 pub struct BackwardScratch {
+    main: LayerScratch,
+    coarse: LayerScratch,
+}
+
+/// One layer's per-pair gradients, and each Gaussian's pairs.
+#[derive(Default)]
+struct LayerScratch {
     pair_grads: Vec<Real>,
+    /// Gaussian i's pairs are `g_pairs[g_start[i]..g_start[i + 1]]`, in tile order.
     g_start: Vec<usize>,
     g_pairs: Vec<u32>,
     cursor: Vec<usize>,
@@ -84,73 +92,61 @@ pub fn backward_into(
     scratch: &mut BackwardScratch,
     out: &mut Gradients,
 ) -> Result<(), String> {
-    let opts = r.state.options;
+    let st = &r.state;
+    let opts = st.options;
     let (w, h, k) = (r.width, r.height, r.num_features);
-    if cam.intrinsics.width != w || cam.intrinsics.height != h || r.state.splats.len() != g.len() {
+    if cam.intrinsics.width != w || cam.intrinsics.height != h || st.main.splats.len() != g.len() {
         return Err("backward needs the Gaussians and camera the render was made with".into());
     }
     let npix = w * h;
     check_grad("color", grads.color, opts.color, npix * 3)?;
     check_grad("depth", grads.depth, opts.depth, npix)?;
     check_grad("alpha", grads.alpha, opts.alpha, npix)?;
-    check_grad("features", grads.features, opts.features && k > 0, npix * k)?;
+    let feature_len = r.feature_width * r.feature_height * k;
+    check_grad(
+        "features",
+        grads.features,
+        opts.features && k > 0,
+        feature_len,
+    )?;
     let cfg = &opts.config;
-    let st = &r.state;
-    let bins = &st.bins;
-    let stride = SLOTS + k;
+    let coarse = !st.coarse.splats.is_empty();
 
-    // Per (tile, Gaussian) pair gradients; each tile owns a contiguous range and writes every
-    // slot of it.
-    let pair_grads = &mut scratch.pair_grads;
-    pair_grads.resize(bins.pair_gauss.len() * stride, 0.0);
-    let mut tile_slices = Vec::with_capacity(st.grid.len());
-    let mut rest = pair_grads.as_mut_slice();
-    for t in 0..st.grid.len() {
-        let n = bins.list(t).len();
-        let (head, tail) = rest.split_at_mut(n * stride);
-        tile_slices.push(head);
-        rest = tail;
-    }
-    let job = TileJob {
-        g,
-        r,
-        grads,
-        k,
-        cfg: &opts.config,
-    };
-    tile_slices.into_par_iter().enumerate().for_each_init(
-        || Box::new(TileGrads::default()),
-        |tg, (t, slots)| {
-            if !slots.is_empty() {
-                tile_backward(opts.simd, &job, t, tg, slots);
-            }
+    // The main layer, then the features' own.
+    let main = TileJob {
+        layer: &st.main,
+        features: g.features,
+        rendered: [&r.color, &r.depth, if coarse { &[] } else { &r.features }],
+        grads: ImageGrads {
+            features: if coarse { None } else { grads.features },
+            ..*grads
         },
-    );
-
-    // Each Gaussian's pairs, in tile order, so that its sum is deterministic.
-    let n = g.len();
-    let BackwardScratch {
-        pair_grads,
-        g_start,
-        g_pairs,
-        cursor,
-    } = scratch;
-    g_start.clear();
-    g_start.push(0);
-    for i in 0..n {
-        g_start.push(g_start[i] + rect_area(&st.rects[i]));
+        k: if coarse { 0 } else { k },
+        cfg,
+    };
+    walk_layer(opts.simd, &main, &mut scratch.main);
+    if coarse {
+        let features = TileJob {
+            layer: &st.coarse,
+            features: g.features,
+            rendered: [&[], &[], &r.features],
+            grads: ImageGrads {
+                features: grads.features,
+                ..Default::default()
+            },
+            k,
+            cfg,
+        };
+        walk_layer(opts.simd, &features, &mut scratch.coarse);
     }
-    g_pairs.resize(g_start[n], 0);
-    cursor.clear();
-    cursor.extend_from_slice(&g_start[..n]);
-    for (pair, &i) in bins.pair_gauss.iter().enumerate() {
-        g_pairs[cursor[i as usize]] = pair as u32;
-        cursor[i as usize] += 1;
-    }
-    let (pair_grads, g_start, g_pairs) = (&pair_grads[..], &g_start[..], &g_pairs[..]);
+    let scale = opts.feature_scale as Real;
+    let strides = [SLOTS + main.k, SLOTS + k];
+    let layers = [&st.main, &st.coarse];
+    let layer_scratch = [&scratch.main, &scratch.coarse];
 
     // Only the rows of Gaussians on screen can be non-zero: clear the rows the last pass
     // touched (or everything, when the map changed size) instead of the whole map's.
+    let n = g.len();
     let nc = g.sh_coeffs * 3;
     let kf = g.num_features;
     let widths = [3, 3, 4, 1, nc, kf, 2];
@@ -166,9 +162,12 @@ pub fn backward_into(
         }
         stale.clear();
     }
-    let rows: Vec<u32> = (0..n as u32)
-        .filter(|&i| rect_area(&st.rects[i as usize]) > 0)
-        .collect();
+    let on_screen = |i: usize| {
+        layers
+            .iter()
+            .any(|l| l.rects.get(i).is_some_and(|r| rect_area(r) > 0))
+    };
+    let rows: Vec<u32> = (0..n as u32).filter(|&i| on_screen(i as usize)).collect();
     out.pose = [0.0; 6];
     const CHUNK: usize = 1024;
     let nch = n.div_ceil(CHUNK);
@@ -205,24 +204,37 @@ pub fn backward_into(
             let mut pose = [0.0; 6];
             for &i in rows_in(&rows, first, CHUNK) {
                 let (i, li) = (i as usize, i as usize - first);
-                let pairs = &g_pairs[g_start[i]..g_start[i + 1]];
-                let mut sg = ScreenGrads::default();
-                for &pr in pairs {
-                    let s = &pair_grads[pr as usize * stride..][..stride];
-                    let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
-                    sg.xy += V2::new(s[slot::X], s[slot::Y]);
-                    sg.conic += v3(slot::CONIC);
-                    sg.opacity += s[slot::OPACITY];
-                    sg.color += v3(slot::COLOR);
-                    sg.depth += s[slot::DEPTH];
-                    if k > 0 {
+                // Each layer's pairs, in tile order, so that the sums are deterministic.
+                let mut sums = [ScreenGrads::default(); 2];
+                for (l, sg) in sums.iter_mut().enumerate().take(1 + usize::from(coarse)) {
+                    let ls = layer_scratch[l];
+                    let stride = strides[l];
+                    for &pr in &ls.g_pairs[ls.g_start[i]..ls.g_start[i + 1]] {
+                        let s = &ls.pair_grads[pr as usize * stride..][..stride];
+                        let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
+                        sg.xy += V2::new(s[slot::X], s[slot::Y]);
+                        sg.conic += v3(slot::CONIC);
+                        sg.opacity += s[slot::OPACITY];
+                        sg.color += v3(slot::COLOR);
+                        sg.depth += s[slot::DEPTH];
                         for (o, v) in gfeat[li * kf..][..kf].iter_mut().zip(&s[SLOTS..]) {
                             *o += v;
                         }
                     }
                 }
+                let [mut sg, low] = sums;
+                // Densification reads the main layer's screen-space gradient alone.
                 gm2[2 * li] = sg.xy.x;
                 gm2[2 * li + 1] = sg.xy.y;
+                if coarse {
+                    // The coarse splat's centre is (xy + 0.5) / s - 0.5 and its covariance
+                    // (cov2d - dilation) / s^2 + dilation.
+                    sg.xy += low.xy / scale;
+                    sg.opacity += low.opacity;
+                    let gc = conic_to_cov_grad(st.coarse.splats[i].conic, low.conic);
+                    let s2 = scale * scale;
+                    sg.cov += V3::new(gc[0][0], gc[0][1], gc[1][1]) / s2;
+                }
                 let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
                     continue;
                 };
@@ -259,12 +271,58 @@ pub fn backward_into(
     Ok(())
 }
 
-/// What every tile of one backward pass reads.
+/// Walks every tile of `job`'s layer into per-pair gradients (each tile owns a contiguous
+/// range of `ls.pair_grads` and writes every slot of it), then lists each Gaussian's pairs.
+fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
+    let layer = job.layer;
+    let bins = &layer.bins;
+    let stride = SLOTS + job.k;
+    ls.pair_grads.resize(bins.pair_gauss.len() * stride, 0.0);
+    let mut tile_slices = Vec::with_capacity(layer.grid.len());
+    let mut rest = ls.pair_grads.as_mut_slice();
+    for t in 0..layer.grid.len() {
+        let (head, tail) = rest.split_at_mut(bins.list(t).len() * stride);
+        tile_slices.push(head);
+        rest = tail;
+    }
+    tile_slices.into_par_iter().enumerate().for_each_init(
+        || Box::new(TileGrads::default()),
+        |tg, (t, slots)| {
+            if !slots.is_empty() {
+                tile_backward(simd, job, t, tg, slots);
+            }
+        },
+    );
+    let n = layer.rects.len();
+    let LayerScratch {
+        g_start,
+        g_pairs,
+        cursor,
+        ..
+    } = ls;
+    g_start.clear();
+    g_start.push(0);
+    for i in 0..n {
+        g_start.push(g_start[i] + rect_area(&layer.rects[i]));
+    }
+    g_pairs.resize(g_start[n], 0);
+    cursor.clear();
+    cursor.extend_from_slice(&g_start[..n]);
+    for (pair, &i) in bins.pair_gauss.iter().enumerate() {
+        g_pairs[cursor[i as usize]] = pair as u32;
+        cursor[i as usize] += 1;
+    }
+}
+
+/// What every tile of one layer's backward walk reads.
 struct TileJob<'a> {
-    g: &'a Gaussians<'a>,
-    r: &'a Rendered,
-    grads: &'a ImageGrads<'a>,
-    /// Feature channels rendered.
+    layer: &'a Layer,
+    /// The Gaussians' features, [N, K].
+    features: &'a [Real],
+    /// The layer's rendered colour, depth and features (empty where it has none).
+    rendered: [&'a [Real]; 3],
+    grads: ImageGrads<'a>,
+    /// Feature channels the layer composited.
     k: usize,
     cfg: &'a RasterConfig,
 }
@@ -304,8 +362,8 @@ impl TileGrads {
     /// Gathers tile `r`'s pixels (pixels outside the image composite nothing).
     #[inline(always)]
     fn load<L: Lanes>(&mut self, job: &TileJob, r: &TileRect) {
-        let (w, k) = (job.r.width, job.k);
-        let (st, ig) = (&job.r.state, job.grads);
+        let (w, k, st, ig) = (job.layer.width, job.k, job.layer, job.grads);
+        let [color, depth, features] = job.rendered;
         self.end.fill(0);
         self.trans.fill(1.0);
         self.prefix.fill(0.0);
@@ -316,13 +374,13 @@ impl TileGrads {
                 for c in 0..3 {
                     let g = ig.color.map_or(0.0, |v| v[3 * p + c]);
                     self.color[c][lp] = g;
-                    total += g * job.r.color.get(3 * p + c).copied().unwrap_or(0.0);
+                    total += g * color.get(3 * p + c).copied().unwrap_or(0.0);
                 }
                 let gd = ig.depth.map_or(0.0, |v| v[p]);
                 self.depth[lp] = gd;
-                total += gd * job.r.depth.get(p).copied().unwrap_or(0.0);
+                total += gd * depth.get(p).copied().unwrap_or(0.0);
                 if let Some(gf) = ig.features {
-                    total += L::dot(&gf[p * k..][..k], &job.r.features[p * k..][..k]);
+                    total += L::dot(&gf[p * k..][..k], &features[p * k..][..k]);
                 }
                 self.total[lp] = total;
                 self.alpha[lp] = ig.alpha.map_or(0.0, |v| v[p]);
@@ -359,9 +417,9 @@ unsafe fn tile_backward_avx2(job: &TileJob, t: usize, tg: &mut TileGrads, slots:
 /// at a time), turning d(loss)/d(pixel) into each pair's screen-space and feature gradients.
 #[inline(always)]
 fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
-    let (st, k, cfg) = (&job.r.state, job.k, job.cfg);
+    let (st, k, cfg) = (job.layer, job.k, job.cfg);
     let stride = SLOTS + k;
-    let r = TileRect::new(&st.grid, t, job.r.width, job.r.height);
+    let r = TileRect::new(&st.grid, t, st.width, st.height);
     let cols = r.columns();
     tg.load::<L>(job, &r);
     let list = st.bins.list(t);
@@ -371,9 +429,9 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
     let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
     let gf = job.grads.features.filter(|_| k > 0);
     for (j, &gi) in list[..walked].iter().enumerate() {
-        prefetch_ahead(list, j, &st.splats, job.g.features, k);
+        prefetch_ahead(list, j, &st.splats, job.features, k);
         let s = &st.splats[gi as usize];
-        let f = &job.g.features[gi as usize * k..][..k];
+        let f = &job.features[gi as usize * k..][..k];
         let slot = &mut slots[j * stride..][..stride];
         slot.fill(0.0);
         let (slot, feat_slot) = slot.split_at_mut(SLOTS);
@@ -403,7 +461,7 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
                 wgt.store(&mut w);
                 let mut dots = [0.0; LANES];
                 let mut bits = L::bits(ok);
-                let p0 = grp.y * job.r.width + r.x0 + grp.gx;
+                let p0 = grp.y * st.width + r.x0 + grp.gx;
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;

@@ -1,4 +1,6 @@
-//! Forward pass: project every Gaussian, bin into tiles, composite front to back.
+//! Forward pass: project every Gaussian, bin into tiles, composite front to back. Colour,
+//! depth and alpha composite in the main layer; features either there too or, when asked for
+//! at a coarser scale, in a layer of their own whose splats come from the same projection.
 
 use rayon::prelude::*;
 
@@ -7,7 +9,7 @@ use super::composite::{composite, TileAcc, TileRect};
 use super::lanes::Avx2;
 use super::lanes::{Portable, Simd};
 use super::math::{sigmoid, V2, V3};
-use super::project::{color_raw, extent, extent_bound, geometry, Pinhole};
+use super::project::{coarser, color_raw, extent, extent_bound, geometry, Pinhole};
 use super::tiles::{bin, rect, rect_area, Bins, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
 use crate::Real;
@@ -59,9 +61,11 @@ fn pixel_span(c: Real, e: Real, size: usize) -> [u32; 2] {
     [first, end.max(first)]
 }
 
-/// What the backward pass needs from the forward pass.
+/// One compositing layer of a render: its size, splats, tile lists and what each pixel did.
 #[derive(Clone, Debug, Default)]
-pub(crate) struct State {
+pub(crate) struct Layer {
+    pub width: usize,
+    pub height: usize,
     pub grid: Grid,
     pub splats: Vec<Splat>,
     pub rects: Vec<Rect>,
@@ -70,6 +74,35 @@ pub(crate) struct State {
     pub pixel_end: Vec<u32>,
     /// Per pixel: final transmittance.
     pub pixel_t: Vec<Real>,
+}
+
+impl Layer {
+    fn reset(&mut self, width: usize, height: usize, n: usize) {
+        self.width = width;
+        self.height = height;
+        self.grid = Grid::new(width, height);
+        self.splats.resize(n, Splat::default());
+        self.rects.resize(n, [0; 4]);
+    }
+
+    fn clear(&mut self) {
+        *self = Layer {
+            splats: std::mem::take(&mut self.splats),
+            rects: std::mem::take(&mut self.rects),
+            ..Default::default()
+        };
+        self.splats.clear();
+        self.rects.clear();
+    }
+}
+
+/// What the backward pass needs from the forward pass.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct State {
+    /// Colour, depth, alpha, and the features unless they have a layer of their own.
+    pub main: Layer,
+    /// The features alone, `feature_scale` times coarser (empty at scale 1).
+    pub coarse: Layer,
     pub options: RenderOptions,
 }
 
@@ -112,37 +145,94 @@ pub fn render_into(
     }
     let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
     let k = if opts.features { g.num_features } else { 0 };
-    let grid = Grid::new(w, h);
+    let scale = opts.feature_scale;
+    if scale == 0 || (k > 0 && (w < scale || h < scale)) {
+        return Err(format!(
+            "feature_scale must be at least 1 and at most the image size, got {scale} for {w}x{h}"
+        ));
+    }
+    let coarse = k > 0 && scale > 1;
     let st = &mut out.state;
-    project_all(g, cam, opts, &grid, st, &mut out.radii);
-    st.bins = bin(&grid, &st.rects, &st.splats);
-    st.grid = grid;
+    st.main.reset(w, h, g.len());
+    if coarse {
+        st.coarse.reset(w / scale, h / scale, g.len());
+    } else {
+        st.coarse.clear();
+    }
+    project_all(g, cam, opts, coarse.then_some(scale), st, &mut out.radii);
     st.options = RenderOptions { simd, ..*opts };
-
-    // Compositing, one row of tiles at a time (its pixels are contiguous in every image).
-    let npix = w * h;
-    let sized = |v: &mut Vec<Real>, on: bool, len: usize| {
+    let main_k = if coarse { 0 } else { k };
+    let outputs = |v: &mut Vec<Real>, on: bool, len: usize| {
         v.clear();
         v.resize(if on { len } else { 0 }, 0.0);
     };
-    sized(&mut out.color, opts.color, npix * 3);
-    sized(&mut out.depth, opts.depth, npix);
-    sized(&mut out.alpha, opts.alpha, npix);
-    sized(&mut out.features, k > 0, npix * k);
-    st.pixel_end.resize(npix, 0);
-    st.pixel_t.resize(npix, 0.0);
+    outputs(&mut out.color, opts.color, w * h * 3);
+    outputs(&mut out.depth, opts.depth, w * h);
+    outputs(&mut out.alpha, opts.alpha, w * h);
+    let (fw, fh) = if coarse {
+        (w / scale, h / scale)
+    } else {
+        (w, h)
+    };
+    outputs(&mut out.features, k > 0, fw * fh * k);
+    let images = Images {
+        color: &mut out.color,
+        depth: &mut out.depth,
+        alpha: &mut out.alpha,
+        features: if coarse { &mut [] } else { &mut out.features },
+    };
+    composite_layer(&mut st.main, simd, g.features, main_k, images, &opts.config);
+    if coarse {
+        let images = Images {
+            color: &mut [],
+            depth: &mut [],
+            alpha: &mut [],
+            features: &mut out.features,
+        };
+        composite_layer(&mut st.coarse, simd, g.features, k, images, &opts.config);
+    }
+    out.width = w;
+    out.height = h;
+    out.num_features = k;
+    out.feature_width = fw;
+    out.feature_height = fh;
+    Ok(())
+}
+
+/// The images a layer composites into (empty slices for those not requested).
+struct Images<'a> {
+    color: &'a mut [Real],
+    depth: &'a mut [Real],
+    alpha: &'a mut [Real],
+    features: &'a mut [Real],
+}
+
+/// Bins a projected layer and composites it, one row of tiles at a time (its pixels are
+/// contiguous in every image), `k` feature channels of `features` ([N, k]).
+fn composite_layer(
+    layer: &mut Layer,
+    simd: Simd,
+    features: &[Real],
+    k: usize,
+    images: Images,
+    cfg: &RasterConfig,
+) {
+    let (w, h, grid) = (layer.width, layer.height, layer.grid);
+    layer.bins = bin(&grid, &layer.rects, &layer.splats);
+    layer.pixel_end.resize(w * h, 0);
+    layer.pixel_t.resize(w * h, 0.0);
     let rows = TILE * w;
     let n = grid.tiles_y;
-    let outs: Vec<_> = split_chunks(&mut out.color, rows * 3, n)
+    let outs: Vec<_> = split_chunks(images.color, rows * 3, n)
         .into_iter()
-        .zip(split_chunks(&mut out.depth, rows, n))
-        .zip(split_chunks(&mut out.alpha, rows, n))
-        .zip(split_chunks(&mut out.features, rows * k, n))
-        .zip(split_chunks(&mut st.pixel_end, rows, n))
-        .zip(split_chunks(&mut st.pixel_t, rows, n))
+        .zip(split_chunks(images.depth, rows, n))
+        .zip(split_chunks(images.alpha, rows, n))
+        .zip(split_chunks(images.features, rows * k, n))
+        .zip(split_chunks(&mut layer.pixel_end, rows, n))
+        .zip(split_chunks(&mut layer.pixel_t, rows, n))
         .enumerate()
         .collect();
-    let (bins, splats, cfg) = (&st.bins, &st.splats[..], &opts.config);
+    let (bins, splats) = (&layer.bins, &layer.splats[..]);
     outs.into_par_iter()
         .for_each(|(ty, (((((col, dep), alp), fea), end), tr))| {
             let mut acc = TileAcc::new(k);
@@ -152,7 +242,7 @@ pub fn render_into(
                 let list = bins.list(t);
                 acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
                 if !list.is_empty() {
-                    composite_tile(simd, &mut acc, list, splats, g.features, k, &r, cfg);
+                    composite_tile(simd, &mut acc, list, splats, features, k, &r, cfg);
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -178,79 +268,118 @@ pub fn render_into(
                 }
             }
         });
-    out.width = w;
-    out.height = h;
-    out.num_features = k;
-    Ok(())
 }
 
-/// Projects every Gaussian into `st.splats` and `st.rects` (culled ones get an empty rect) and
-/// their screen radii into `radii`.
+/// Projects every Gaussian into the main layer's splats and rects (culled ones get an empty
+/// rect) and, with `coarse = Some(scale)`, into the coarse layer's as well; their main-layer
+/// screen radii into `radii`.
 fn project_all(
     g: &Gaussians,
     cam: &Camera,
     opts: &RenderOptions,
-    grid: &Grid,
+    coarse: Option<usize>,
     st: &mut State,
     radii: &mut Vec<Real>,
 ) {
     let cfg = &opts.config;
     let pin = Pinhole::new(cam, cfg);
     let cam_pos = cam.position();
-    let (image_w, image_h) = (cam.intrinsics.width, cam.intrinsics.height);
-    let n = g.len();
-    st.splats.resize(n, Splat::default());
-    st.rects.resize(n, [0; 4]);
-    radii.resize(n, 0.0);
-    st.splats
-        .par_iter_mut()
-        .zip(st.rects.par_iter_mut())
-        .zip(radii.par_iter_mut())
-        .enumerate()
-        .with_min_len(1024)
-        .for_each(|(i, ((splat, rect), radius))| {
-            *rect = [0; 4];
-            *radius = 0.0;
-            let opacity = sigmoid(g.opacity_logits[i]);
-            // Most of a large map lies outside any one view: rule those out before the full
-            // projection.
-            match extent_bound(g, i, cam, &pin, opacity, cfg) {
-                Some((xy, e)) if rect_area(&rect_of(grid, xy, e)) > 0 => {}
-                _ => return,
-            }
-            let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
-                return;
-            };
-            let Some(ext) = extent(&geo, opacity, cfg) else {
-                return;
-            };
-            let r = rect_of(grid, geo.xy, ext);
-            if rect_area(&r) == 0 {
-                return;
-            }
-            let color = if opts.color {
+    let (main, low) = (&mut st.main, &mut st.coarse);
+    let (grid, low_grid) = (main.grid, low.grid);
+    let (size, low_size) = ((main.width, main.height), (low.width, low.height));
+    // The cheap bound must contain the coarse layer's extents too, whose dilation is `scale`^2
+    // times larger in main-layer pixels.
+    let bound_cfg = RasterConfig {
+        dilation: cfg.dilation * coarse.map_or(1, |s| s * s) as Real,
+        ..*cfg
+    };
+    radii.resize(g.len(), 0.0);
+    let splat_at = |xy: V2, conic: V3, ext: V2, (w, h): (usize, usize), opacity: Real| Splat {
+        xy,
+        conic,
+        opacity,
+        depth: 0.0,
+        color: V3::ZERO,
+        pixels: {
+            let ([x0, x1], [y0, y1]) = (pixel_span(xy.x, ext.x, w), pixel_span(xy.y, ext.y, h));
+            [x0, y0, x1, y1]
+        },
+        sigma_max: (opacity / cfg.alpha_min).ln(),
+    };
+    let project_one = |i: usize,
+                       (splat, rect, radius): (&mut Splat, &mut Rect, &mut Real),
+                       low_out: Option<(&mut Splat, &mut Rect)>| {
+        *rect = [0; 4];
+        *radius = 0.0;
+        let low_out = low_out.map(|(s, r)| {
+            *r = [0; 4];
+            (s, r)
+        });
+        let opacity = sigmoid(g.opacity_logits[i]);
+        // Most of a large map lies outside any one view: rule those out before the full
+        // projection.
+        match extent_bound(g, i, cam, &pin, opacity, &bound_cfg) {
+            Some((xy, e)) if rect_area(&rect_of(&grid, xy, e)) > 0 => {}
+            _ => return,
+        }
+        let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
+            return;
+        };
+        let Some(ext) = extent(geo.cov2d, opacity, cfg) else {
+            return;
+        };
+        let r = rect_of(&grid, geo.xy, ext);
+        let low = coarse.and_then(|s| {
+            let (xy, conic, cov2d) = coarser(&geo, s as Real, cfg)?;
+            let ext = extent(cov2d, opacity, cfg)?;
+            Some((xy, conic, ext, rect_of(&low_grid, xy, ext)))
+        });
+        let low_area = low.map_or(0, |l| rect_area(&l.3));
+        if rect_area(&r) == 0 && low_area == 0 {
+            return;
+        }
+        *splat = Splat {
+            depth: geo.p_cam.z,
+            color: if opts.color {
                 color_raw(g, i, opts.sh_degree, cam_pos).max(V3::ZERO)
             } else {
                 V3::ZERO
-            };
-            *splat = Splat {
-                xy: geo.xy,
-                conic: geo.conic,
-                opacity,
+            },
+            ..splat_at(geo.xy, geo.conic, ext, size, opacity)
+        };
+        *rect = r;
+        *radius = if rect_area(&r) > 0 {
+            ext.x.max(ext.y)
+        } else {
+            0.0
+        };
+        if let (Some((xy, conic, ext, lr)), Some((ls, lrect))) = (low, low_out) {
+            *ls = Splat {
                 depth: geo.p_cam.z,
-                color,
-                pixels: {
-                    let ([x0, x1], [y0, y1]) = (
-                        pixel_span(geo.xy.x, ext.x, image_w),
-                        pixel_span(geo.xy.y, ext.y, image_h),
-                    );
-                    [x0, y0, x1, y1]
-                },
-                sigma_max: (opacity / cfg.alpha_min).ln(),
+                ..splat_at(xy, conic, ext, low_size, opacity)
             };
-            *rect = r;
-            *radius = ext.x.max(ext.y);
-        });
+            *lrect = lr;
+        }
+    };
+    let main_rows = main
+        .splats
+        .par_iter_mut()
+        .zip(main.rects.par_iter_mut())
+        .zip(radii.par_iter_mut())
+        .map(|((s, r), rad)| (s, r, rad));
+    if coarse.is_some() {
+        let low_rows = low.splats.par_iter_mut().zip(low.rects.par_iter_mut());
+        main_rows
+            .zip(low_rows)
+            .enumerate()
+            .with_min_len(1024)
+            .for_each(|(i, (m, l))| project_one(i, m, Some(l)));
+    } else {
+        main_rows
+            .enumerate()
+            .with_min_len(1024)
+            .for_each(|(i, m)| project_one(i, m, None));
+    }
 }
 
 #[inline]

@@ -159,6 +159,10 @@ pub struct RenderOptions {
     pub depth: bool,
     pub alpha: bool,
     pub features: bool,
+    /// Features are rendered this many times coarser than the other images (width / s by
+    /// height / s, intrinsics scaled about pixel centres) from the same projection: a feature
+    /// target holds little detail, and K channels cost K times a colour channel.
+    pub feature_scale: usize,
     pub config: RasterConfig,
     /// Which compositing implementation runs (the results are the same bits either way).
     pub simd: Simd,
@@ -172,6 +176,7 @@ impl Default for RenderOptions {
             depth: true,
             alpha: true,
             features: true,
+            feature_scale: 1,
             config: RasterConfig::default(),
             simd: Simd::Auto,
         }
@@ -184,15 +189,18 @@ pub struct Rendered {
     pub width: usize,
     pub height: usize,
     pub num_features: usize,
+    /// The size of the feature image (the other images' at `feature_scale` 1).
+    pub feature_width: usize,
+    pub feature_height: usize,
     /// [H, W, 3]
     pub color: Vec<Real>,
     /// [H, W] alpha-blended camera-space z.
     pub depth: Vec<Real>,
     /// [H, W] accumulated opacity, 1 - final transmittance.
     pub alpha: Vec<Real>,
-    /// [H, W, K]
+    /// [feature_height, feature_width, K]
     pub features: Vec<Real>,
-    /// Per Gaussian: screen-space half extent in pixels (0 when culled).
+    /// Per Gaussian: screen-space half extent in pixels (0 when not in the main layer).
     pub radii: Vec<Real>,
     pub(crate) state: forward::State,
 }
@@ -200,7 +208,7 @@ pub struct Rendered {
 impl Rendered {
     /// Number of (tile, Gaussian) pairs composited: the work the rasterizer did.
     pub fn num_pairs(&self) -> usize {
-        self.state.bins.pair_gauss.len()
+        self.state.main.bins.pair_gauss.len() + self.state.coarse.bins.pair_gauss.len()
     }
 }
 

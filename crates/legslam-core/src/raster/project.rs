@@ -50,7 +50,7 @@ pub(crate) struct Geometry {
     j1: V3,
     clamped: (bool, bool),
     /// 2D covariance (with dilation) entries (xx, xy, yy) and its inverse, the conic (a, b, c).
-    cov2d: V3,
+    pub cov2d: V3,
     pub conic: V3,
     pub xy: V2,
 }
@@ -158,10 +158,11 @@ pub(crate) fn extent_bound(
     ))
 }
 
-/// Half extents (x, y) in pixels of the region where the Gaussian's alpha can reach
-/// `alpha_min`: the bounding box of the ellipse `0.5 d^T conic d <= ln(opacity / alpha_min)`.
+/// Half extents (x, y) in pixels of the region where a Gaussian of 2D covariance `cov2d`
+/// (xx, xy, yy) has alpha at least `alpha_min`: the bounding box of the ellipse
+/// `0.5 d^T conic d <= ln(opacity / alpha_min)`.
 #[inline]
-pub(crate) fn extent(geo: &Geometry, opacity: Real, cfg: &RasterConfig) -> Option<V2> {
+pub(crate) fn extent(cov2d: V3, opacity: Real, cfg: &RasterConfig) -> Option<V2> {
     let level = (opacity / cfg.alpha_min).ln();
     if !(level > 0.0) {
         return None;
@@ -169,9 +170,47 @@ pub(crate) fn extent(geo: &Geometry, opacity: Real, cfg: &RasterConfig) -> Optio
     // Padded a hair so that rounding never drops a pixel whose alpha reaches the cut-off.
     let pad = |v: Real| v * 1.0001 + 1e-3;
     Some(V2::new(
-        pad((2.0 * level * geo.cov2d.x).sqrt()),
-        pad((2.0 * level * geo.cov2d.z).sqrt()),
+        pad((2.0 * level * cov2d.x).sqrt()),
+        pad((2.0 * level * cov2d.z).sqrt()),
     ))
+}
+
+/// The projected Gaussian `geo` in an image `s` times coarser (intrinsics scaled about pixel
+/// centres, as an image pyramid's levels are): centre `(xy + 0.5) / s - 0.5`, covariance
+/// `(cov2d - dilation) / s^2 + dilation` (the low-pass filter is one pixel of each image).
+/// Returns centre, conic and covariance; `None` where the covariance degenerates.
+#[inline]
+pub(crate) fn coarser(geo: &Geometry, s: Real, cfg: &RasterConfig) -> Option<(V2, V3, V3)> {
+    let (d, s2) = (cfg.dilation, s * s);
+    let c = geo.cov2d;
+    let cov2d = V3::new((c.x - d) / s2 + d, c.y / s2, (c.z - d) / s2 + d);
+    let det = cov2d.x * cov2d.z - cov2d.y * cov2d.y;
+    if !(det > 1e-12) {
+        return None;
+    }
+    let conic = V3::new(cov2d.z / det, -cov2d.y / det, cov2d.x / det);
+    Some(((geo.xy + 0.5) / s - 0.5, conic, cov2d))
+}
+
+/// d(loss)/d(2D covariance) as a 2x2 matrix, from d(loss)/d(conic entries a, b, c) (b counted
+/// once, as it enters sigma): G_cov = -Q G_Q Q with G_Q the symmetric-matrix gradient.
+#[inline]
+pub(crate) fn conic_to_cov_grad(conic: V3, g_conic: V3) -> [[Real; 2]; 2] {
+    let q2 = [[conic.x, conic.y], [conic.y, conic.z]];
+    let gq = [[g_conic.x, 0.5 * g_conic.y], [0.5 * g_conic.y, g_conic.z]];
+    let mut g_cov2 = [[0.0; 2]; 2];
+    for (a, row) in g_cov2.iter_mut().enumerate() {
+        for (b, v) in row.iter_mut().enumerate() {
+            let mut sum = 0.0;
+            for c in 0..2 {
+                for d in 0..2 {
+                    sum += q2[a][c] * gq[c][d] * q2[d][b];
+                }
+            }
+            *v = -sum;
+        }
+    }
+    g_cov2
 }
 
 /// View direction from the camera centre to the Gaussian, unnormalised.
@@ -205,6 +244,9 @@ pub(crate) struct ScreenGrads {
     pub xy: V2,
     /// With respect to the conic entries (a, b, c) as scalars.
     pub conic: V3,
+    /// With respect to the 2D covariance as a matrix (xx, xy = yx, yy), beside what `conic`
+    /// contributes (a coarser layer's share).
+    pub cov: V3,
     pub opacity: Real,
     pub color: V3,
     pub depth: Real,
@@ -247,24 +289,12 @@ pub(crate) fn backward_one(
     g_p.y += sg.xy.y * pin.fy / z;
     g_p.z -= (sg.xy.x * pin.fx * x + sg.xy.y * pin.fy * y) / (z * z);
 
-    // Conic -> 2D covariance: G_cov = -Q G_Q Q, with G_Q the symmetric-matrix gradient.
-    let q2 = [[geo.conic.x, geo.conic.y], [geo.conic.y, geo.conic.z]];
-    let gq = [
-        [sg.conic.x, 0.5 * sg.conic.y],
-        [0.5 * sg.conic.y, sg.conic.z],
-    ];
-    let mut g_cov2 = [[0.0; 2]; 2];
-    for (a, row) in g_cov2.iter_mut().enumerate() {
-        for (b, v) in row.iter_mut().enumerate() {
-            let mut s = 0.0;
-            for c in 0..2 {
-                for d in 0..2 {
-                    s += q2[a][c] * gq[c][d] * q2[d][b];
-                }
-            }
-            *v = -s;
-        }
-    }
+    // Conic -> 2D covariance.
+    let mut g_cov2 = conic_to_cov_grad(geo.conic, sg.conic);
+    g_cov2[0][0] += sg.cov.x;
+    g_cov2[0][1] += sg.cov.y;
+    g_cov2[1][0] += sg.cov.y;
+    g_cov2[1][1] += sg.cov.z;
 
     // 2D covariance = J cov_cam J^T: to cov_cam and to J.
     let (j0, j1) = (geo.j0, geo.j1);
@@ -430,7 +460,7 @@ mod tests {
         for (i, &logit) in logits.iter().enumerate() {
             let opacity = sigmoid(logit);
             let exact = geometry(&g, i, &cam, &pin, &cfg)
-                .and_then(|geo| extent(&geo, opacity, &cfg).map(|e| (geo.xy, e)));
+                .and_then(|geo| extent(geo.cov2d, opacity, &cfg).map(|e| (geo.xy, e)));
             let Some((xy, e)) = exact else { continue };
             kept += 1;
             let (bxy, be) = extent_bound(&g, i, &cam, &pin, opacity, &cfg)
