@@ -28,10 +28,13 @@ DEFAULT = ROOT.parent / "shared" / "data" / "7scenes_tsdf_fusion" / "data"
 
 
 def odometry(seq) -> tuple[np.ndarray, float]:
-    """Poses and median ms/frame of the tracker alone, frame to frame, default options."""
-    from legslam.tracking import Odometry
+    """Poses and median ms/frame of the tracker alone, frame to frame, as `legslam odometry`
+    tracks (its pyramid for the frame size)."""
+    from legslam.tracking import Odometry, fitting_levels, odometry_finest_level
 
-    odo = Odometry()
+    h, w = seq[0].depth.shape
+    finest = odometry_finest_level(w)
+    odo = Odometry(finest_level=finest, levels=fitting_levels(w, h, finest))
     poses, times = [], []
     for i in range(len(seq)):
         f = seq[i]
