@@ -276,3 +276,16 @@ def test_a_false_loop_is_rejected_and_logged(room, caplog):
     assert loops.rejected and loops.rejected[0]["keyframes"] == [0, 9]
     assert not loops.events and np.allclose(np.stack(loops.poses), before)
     assert all(e.kind == "odometry" for e in loops.graph.edges)
+
+
+def test_without_the_encoder_no_features_runs_without_place_recognition(scene, tmp_path, monkeypatch,
+                                                                       caplog):
+    monkeypatch.setenv("LEGSLAM_CACHE", str(tmp_path))  # no encoder cached there
+    with caplog.at_level("WARNING", logger="legslam"):
+        slam = SLAM(SLAMConfig(features=False, final_iters=0), scene[0].K, W, H)
+    assert "no relocalisation or loop closure" in caplog.text
+    assert slam.places is None and slam.relocaliser is None and slam.loops is None
+    run_frames(slam, [scene[i] for i in range(3)])
+    assert "relocalisations" not in slam.trajectory_events()
+    with pytest.raises(FileNotFoundError):  # language features still need it
+        SLAM(SLAMConfig(final_iters=0), scene[0].K, W, H)

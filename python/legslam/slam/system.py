@@ -74,10 +74,8 @@ class SLAM:
             "preprocessing": [], "tracking": [], "relocalisation": [], "mapping": [], "frame": []}
         self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
         # The encoder first: it checks feature_dim before the map is sized by it.
-        self._features = (FeatureFeed(
-            c, (lambda kf, grid: self._mapping.set_features(kf, grid)) if c.features else None,
-            self.feature_timings, encoder, tokens=self._place_seen if c.place_recognition else None)
-            if c.features or c.place_recognition else None)
+        self._features = self._feature_feed(encoder)
+        places = self._features is not None and c.place_recognition
         self.depth_range = (c.mapper.depth_min, c.mapper.depth_max)
         #: Frames without any depth measurement, and frames whose depth lay mostly outside
         #: `depth_range` (dropped: see `_prepare`).
@@ -91,10 +89,10 @@ class SLAM:
                           **c.tracker_options(*self.track_size))
         self.tracking = TrackingPolicy(tracker, self.K_track, c.reference_alpha, c.min_reference_coverage,
                                        c.jump_residual_ratio if c.relocalise else float("inf"))
-        self.places = PlaceIndex(c, tracker, self.K_track) if c.place_recognition else None
+        self.places = PlaceIndex(c, tracker, self.K_track) if places else None
         self.relocaliser = (Relocaliser(self.places, self._features.encoder, self.K_track)
-                            if c.relocalise else None)
-        self.loops = LoopClosure(c, self.places) if c.loop_closure else None
+                            if places and c.relocalise else None)
+        self.loops = LoopClosure(c, self.places) if places and c.loop_closure else None
         # Keyframe views waiting for their patch tokens to become places; the keyframe the
         # next one is tracked after (the pose graph's odometry edge).
         self._unplaced: dict[int, KeyframeView] = {}
@@ -108,6 +106,22 @@ class SLAM:
         self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch)
                          if c.mapping_thread else self._inline_mapping())
         self._final_stats: list = []
+
+    def _feature_feed(self, encoder) -> Optional[FeatureFeed]:
+        """The keyframes' encoder: language features, place recognition, or both. Without
+        language features a missing encoder only turns place recognition off (warned)."""
+        c = self.config
+        sink = (lambda kf, grid: self._mapping.set_features(kf, grid)) if c.features else None
+        tokens = self._place_seen if c.place_recognition else None
+        if not (c.features or c.place_recognition):
+            return None
+        try:
+            return FeatureFeed(c, sink, self.feature_timings, encoder, tokens=tokens)
+        except FileNotFoundError as e:
+            if c.features:
+                raise
+            log.warning("no relocalisation or loop closure: they need the image encoder (%s)", e)
+            return None
 
     def _inline_mapping(self) -> InlineMapping:
         c = self.config
