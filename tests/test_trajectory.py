@@ -109,7 +109,7 @@ def test_retrieval_ranks_the_revisited_keyframe_first(encoder, room):
     K, view = room
     path = turn_in_place(8, 45.0)  # eight keyframes looking all round the room
     tracker = Tracker(levels=3, finest_level=0)
-    index = PlaceIndex(SLAMConfig(place_min_similarity=-1.0, place_candidates=8), tracker, K)
+    index = PlaceIndex(SLAMConfig(place_min_similarity=0.0, place_candidates=8), tracker, K)
     for k, pose in enumerate(path):
         rgb, depth = view(pose)
         index.add(Place.of(k, encoder.encode(rgb), View(pose, rgb, depth), K))

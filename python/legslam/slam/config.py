@@ -324,8 +324,8 @@ _RANGES = {
     # value from reaching the engine's allocations where the encoder does not say.
     "feature_dim": (1, 4096),
     "pca_keyframes": (1, _INF),
-    "place_candidates": (1, _INF), "place_min_similarity": (-1.0, 1.0),
-    "place_min_token_similarity": (-1.0, 1.0), "place_ransac_threshold": (1e-6, _INF),
+    "place_candidates": (1, _INF), "place_min_similarity": (0.0, 1.0),
+    "place_min_token_similarity": (0.0, 1.0), "place_ransac_threshold": (1e-6, _INF),
     "place_min_inliers": (3, _INF), "place_min_inlier_ratio": (0.0, 1.0), "loop_min_gap": (1, _INF),
     "odometry_sigma_translation": (1e-6, _INF), "odometry_sigma_rotation": (1e-6, _INF),
     "loop_sigma_translation": (1e-6, _INF), "loop_sigma_rotation": (1e-6, _INF),
