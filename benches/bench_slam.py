@@ -2,7 +2,9 @@
 ../shared/data, 640x480): the whole pipeline with language features, as `legslam run` does it,
 and the tracker's own frame-to-frame odometry on the same frames in the same process.
 
-Prints ATE RMSE (all frames, SE(3)-aligned, as `evo_ape -a`), PSNR / SSIM / depth L1 of the
+Prints ATE RMSE (all frames, SE(3)-aligned, as `evo_ape -a`) and the median frame-to-frame
+relative pose error of SLAM and of the odometry, relocalisations and loops closed (time per
+closure), PSNR / SSIM / depth L1 of the
 final map rendered at the estimated pose of every 5th frame and of every keyframe, the number
 of Gaussians, peak memory, frames per second and the per-stage time table.
 
@@ -25,20 +27,28 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT = ROOT.parent / "shared" / "data" / "7scenes_tsdf_fusion" / "data"
 
 
-def odometry_ate(seq) -> tuple[float, float]:
-    """ATE (m) and median ms/frame of the tracker alone, frame to frame, default options."""
-    from legslam.eval import ate_rmse
-    from legslam.tracking import Odometry
+def odometry(seq) -> tuple[np.ndarray, float]:
+    """Poses and median ms/frame of the tracker alone, frame to frame, as `legslam odometry`
+    tracks (its pyramid for the frame size)."""
+    from legslam.tracking import Odometry, fitting_levels, odometry_finest_level
 
-    odo = Odometry()
+    h, w = seq[0].depth.shape
+    finest = odometry_finest_level(w)
+    odo = Odometry(finest_level=finest, levels=fitting_levels(w, h, finest))
     poses, times = [], []
     for i in range(len(seq)):
         f = seq[i]
         t0 = time.perf_counter()
         poses.append(odo.step(f.rgb, f.depth, f.K).pose)
         times.append(1e3 * (time.perf_counter() - t0))
-    gt = np.stack([seq[i].pose for i in range(len(seq))])
-    return ate_rmse(gt, np.stack(poses)), float(np.median(times[1:]))
+    return np.stack(poses), float(np.median(times[1:]))
+
+
+def median_rpe_cm(gt: np.ndarray, est: np.ndarray) -> float:
+    """Median translation error (cm) of consecutive frames' relative poses."""
+    from legslam.eval import rpe
+
+    return 100 * rpe(gt, est, delta=1, all_pairs=True)["trans"]["median"]
 
 
 def main() -> int:
@@ -65,12 +75,26 @@ def main() -> int:
     result = run(seq, args.out, cfg, progress=Progress(len(seq)))
     m, t = result["metrics"], result["timings"]
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    odo_ate, odo_ms = odometry_ate(seq)
+    from legslam.eval import ate_rmse, read_tum
+
+    gt = np.stack([seq[i].pose for i in range(len(seq))])
+    odo_poses, odo_ms = odometry(seq)
+    odo_ate = ate_rmse(gt, odo_poses)
+    slam_poses = read_tum(Path(args.out, "trajectory.txt"))[1]
+    rpe_slam, rpe_odo = median_rpe_cm(gt, slam_poses), median_rpe_cm(gt, odo_poses)
+    relocs, loops = m.get("relocalisations", []), m.get("loop_closures", [])
 
     print("\n| | value |\n|---|---|")
     print(f"| frames / keyframes / lost | {m['frames']} / {m['keyframes']} / {m['lost_frames']} |")
     print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {m['ate_rmse_cm']:.2f} cm |")
     print(f"| ATE RMSE, tracker frame-to-frame odometry | {100 * odo_ate:.2f} cm ({odo_ms:.1f} ms/frame median) |")
+    print(f"| frame-to-frame RPE median, SLAM / odometry | {rpe_slam:.3f} / {rpe_odo:.3f} cm |")
+    after = ", ".join(f"{r['frame']}: {r['lost_frames']}" for r in relocs)
+    print(f"| relocalisations (frame: lost frames before) | {len(relocs)} ({after}) |")
+    loop_ms = [e["ms"] for e in loops]
+    print(f"| loops closed / rejected, ms per closure (median) | {len(loops)} / "
+          f"{len(m.get('rejected_loops', []))}, {np.median(loop_ms) if loop_ms else 0:.0f} ms |")
+    print(f"| places kept (keyframes' tokens, points, views) | {m.get('place_memory_mb', 0):.1f} MB |")
     for name, label in (("every_5", "every 5th frame"), ("at_keyframes", "keyframes")):
         v = m[name]
         print(f"| map at {label} ({v['count']} views): PSNR / SSIM / depth L1 | "
@@ -90,6 +114,7 @@ def main() -> int:
             print(f"| {k} | | | {v['total_s']:.1f} |")
     Path(args.out, "bench.json").write_text(json.dumps(
         {"metrics": m, "timings": t, "odometry_ate_m": odo_ate, "odometry_ms": odo_ms,
+         "rpe_median_cm": {"slam": rpe_slam, "odometry": rpe_odo},
          "peak_mb": peak_mb}, indent=2))
     return 0
 

@@ -54,6 +54,7 @@ def _entries():
         "MapperCore.keyframe_poses": lambda: mapper.keyframe_poses(),
         "MapperCore.keyframe_exposures": lambda: mapper.keyframe_exposures(),
         "MapperCore.export": lambda: mapper.export(),
+        "MapperCore.correct_keyframes": lambda: mapper.correct_keyframes(np.eye(4)[None]),
         "TrackerCore": lambda: _core.TrackerCore({"levels": 2}),
         "TrackerCore.config": lambda: tracker.config(),
         "TrackerCore.prepare_reference": lambda: tracker.prepare_reference(rgb, depth, K, np.eye(4)),
@@ -131,3 +132,18 @@ def test_options_keep_their_kinds_from_python_to_the_engine():
                          ({"lost": 1}, 'unknown tracker option "lost"')):
         with pytest.raises(ValueError, match=message):
             _core.tracker_options(bad)
+
+
+def test_keyframe_corrections_are_checked_by_name_and_value():
+    rgb, depth = _frame()
+    mapper = _core.MapperCore({"levels": 1, "finest_level": 0, "grow_level": 0})
+    mapper.add_keyframe(rgb.astype(np.float32) / 255, depth, K, np.eye(4))
+    with pytest.raises(ValueError, match=r"corrections must have shape Nx4x4, got \[4, 4\]"):
+        mapper.correct_keyframes(np.eye(4))
+    with pytest.raises(ValueError, match="2 corrections for 1 keyframes"):
+        mapper.correct_keyframes(np.stack([np.eye(4)] * 2))
+    skew = np.eye(4)
+    skew[0, 1] = 0.5
+    with pytest.raises(ValueError, match="correction 0 rotation must be orthonormal"):
+        mapper.correct_keyframes(skew[None])
+    assert mapper.correct_keyframes(np.eye(4)[None]) == mapper.num_gaussians

@@ -84,7 +84,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
                 viewer_ms.append(1e3 * (time.perf_counter() - t1))
             if progress is not None:
                 progress.frame(i, f"{r.state:4s}  kf {len(slam.keyframe_frames)}  "
-                                  f"gaussians {slam.num_gaussians}")
+                                  f"gaussians {slam.num_gaussians}{_events(slam)}")
         live_s = time.perf_counter() - t0
         if live:
             seq.close()  # the camera's streams stop, its recording is complete
@@ -110,7 +110,8 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
                "lost_frames": int(sum(s == "lost" for s in slam.states)),
                "frames_without_depth": slam.frames_without_depth,
                "frames_depth_out_of_range": slam.frames_depth_out_of_range,
-               "gaussians": slam.mapper.num_gaussians, "fps": timings["fps"]}
+               "gaussians": slam.mapper.num_gaussians, "fps": timings["fps"],
+               **slam.trajectory_events()}
     if live:  # taken from the camera as they came; evaluated on the frames recorded
         metrics["dropped_frames"] = seq.dropped
         seq = seq.recording()
@@ -122,6 +123,13 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
         exposures=slam.frame_exposures(), renders_dir=renders))
     write_json(out / METRICS, metrics)
     return {"metrics": metrics, "timings": timings, "out": str(out), "slam": slam}
+
+
+def _events(slam: SLAM) -> str:
+    """The progress line's count of relocalisations and loops closed, once there are any."""
+    e = slam.trajectory_events()
+    n, m = len(e.get("relocalisations", ())), len(e.get("loop_closures", ()))
+    return (f"  reloc {n}" if n else "") + (f"  loops {m}" if m else "")
 
 
 def _timing_table(slam: SLAM, wall_s: float, live_s: float, viewer_ms: list[float]) -> dict:

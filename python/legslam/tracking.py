@@ -25,7 +25,7 @@ import numpy as np
 
 from legslam import _core
 
-__all__ = ["DEFAULT_CONFIG", "fitting_levels", "TrackResult", "Tracker", "Reference", "Odometry",
+__all__ = ["DEFAULT_CONFIG", "fitting_levels", "odometry_finest_level", "TrackResult", "Tracker", "Reference", "Odometry",
            "OdometryStep"]
 
 #: The engine's default tracker options (`Tracker(**overrides)` changes any of them).
@@ -54,6 +54,12 @@ def fitting_levels(width: int, height: int, finest_level: int) -> int:
     (the engine refuses that) for a width x height image tracked from `finest_level`."""
     smallest = min(width, height) >> finest_level
     return min(DEFAULT_CONFIG["levels"], max(1, int(np.log2(max(smallest, 8) / 8)) + 1))
+
+
+def odometry_finest_level(width: int) -> int:
+    """The finest level `legslam odometry` tracks a `width`-pixel-wide frame at: the default's
+    on 640x480 (160 pixels wide), no coarser than what leaves at least 160 pixels."""
+    return min(DEFAULT_CONFIG["finest_level"], int(np.log2(max(width, 160) / 160)))
 
 
 def _image(a) -> np.ndarray:

@@ -1,7 +1,8 @@
 """A live view of a run in rerun (https://rerun.io, `pip install 'legslam[viewer]'`).
 
 Every frame: the input colour and depth under a pinhole camera at the estimated pose, the
-trajectory so far (and the ground truth, where the sequence has it) and the map's size. At
+trajectory so far (and the ground truth, where the sequence has it), the loops closed (an
+edge between the keyframes each joined) and the map's size. At
 keyframes (not while a mapping thread owns the map) and at the end, the costlier views: the
 Gaussian centres in their colours, the map rendered at the current pose, and its language
 features as colour.
@@ -92,6 +93,7 @@ class RerunViewer:
         self._gt: list[np.ndarray] = []
         self._gt_anchor = None  # maps ground truth into the run's frame: first poses coincide
         self._basis = None  # fixed once features exist, so their colours stay put
+        self._loops_drawn = 0
 
     def on_frame(self, index: int, frame, step, slam) -> None:
         rr, rec = self.rr, self.rec
@@ -112,6 +114,7 @@ class RerunViewer:
                 self._gt.append((self._gt_anchor @ frame.pose)[:3, 3])
                 rec.log("world/ground_truth", rr.LineStrips3D([self._gt], colors=[0, 200, 80]))
         rec.log("stats/gaussians", rr.Scalars(slam.num_gaussians))
+        self._log_loops(slam)
         if step.keyframe and not slam.mapping_in_thread:  # else the thread owns the map
             self._log_map(slam, pose)
 
@@ -124,6 +127,17 @@ class RerunViewer:
         except RuntimeError as e:  # the viewer window was closed: the run's outputs still count
             log.warning("viewer: %s", e)
         self.rec.disconnect()
+
+    def _log_loops(self, slam) -> None:
+        """Each loop closed as a line between its two keyframes (at their corrected poses),
+        logged again when a loop is added."""
+        loops = slam.loops
+        if loops is None or len(loops.events) == self._loops_drawn:
+            return
+        self._loops_drawn = len(loops.events)
+        centres = np.stack(loops.poses)[:, :3, 3]
+        self.rec.log("world/loop_edges", self.rr.LineStrips3D(
+            [centres[[e.old, e.new]] for e in loops.events], colors=[230, 40, 230]))
 
     def _log_map(self, slam, pose) -> None:
         rr, rec = self.rr, self.rec

@@ -1,6 +1,7 @@
 //! Bindings of the mapper: the map lives here in Rust; frames cross once, images and arrays
 //! are copied out only on request.
 
+use legslam_core::camera::Pose;
 use legslam_core::map::train::{Mapper, MapperConfig, TrainReport};
 use legslam_core::map::{FeatureGrid, GaussianMap};
 use legslam_core::raster::Rendered;
@@ -216,6 +217,23 @@ impl PyMapper {
         Ok(PyArray1::from_vec(py, flat)
             .reshape([kfs.len(), 4, 4])?
             .into_any())
+    }
+
+    /// Moves keyframe k by `corrections[k]` (n x 4 x 4 float64, rigid world-to-world
+    /// transforms, n at most the keyframes) and every Gaussian it made with it; returns the
+    /// Gaussians moved.
+    fn correct_keyframes(
+        &mut self,
+        py: Python<'_>,
+        corrections: &Bound<'_, PyAny>,
+    ) -> PyResult<usize> {
+        let a = array::<f64, numpy::Ix3>(corrections, "corrections", &[None, Some(4), Some(4)])?;
+        let v = a.as_array();
+        let c: Vec<Pose> = (0..v.shape()[0])
+            .map(|k| Pose::from_fn(|i, j| v[[k, i, j]]))
+            .collect();
+        let inner = &mut self.inner;
+        pool::call(&self.pool, py, || inner.correct_keyframes(&c))
     }
 
     /// Every keyframe's exposure as n x 2 x 3: per channel the gain and the bias that take

@@ -21,7 +21,7 @@ import numpy as np
 from .. import datasets
 from ..eval import ate_rmse, write_tum
 from ..run_folder import replace_atomically
-from ..tracking import DEFAULT_CONFIG, Odometry, fitting_levels
+from ..tracking import Odometry, fitting_levels, odometry_finest_level
 from .common import UserError, add_sequence_options, open_sequence, output_file
 
 
@@ -59,12 +59,12 @@ def run(args: argparse.Namespace) -> int:
         first = seq[0]
     except datasets.DatasetError as e:
         raise UserError(f"cannot read the first frame: {e}")
-    # Unless told: the finest level at most 160 pixels wide as the default's on 640x480, and as
-    # many levels as the image has room for.
+    # Unless told: the finest level as odometry_finest_level says, and as many levels as the
+    # image has room for.
     h, w = first.depth.shape
     finest = args.finest_level
     if finest is None:
-        finest = min(DEFAULT_CONFIG["finest_level"], int(np.log2(max(w, 160) / 160)))
+        finest = odometry_finest_level(w)
     config = {"finest_level": finest}
     if args.levels is not None:
         config["levels"] = args.levels

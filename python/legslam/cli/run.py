@@ -40,7 +40,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "map, metrics, renders, ...); other files there are left alone")
     p.add_argument("--config", default=None, help="a .toml/.json/.yaml file overriding defaults")
     p.add_argument("--no-features", action="store_true",
-                   help="no language features (no encoder needed)")
+                   help="no language features (the encoder, when cached, still serves "
+                        "relocalisation and loop closure)")
     p.add_argument("--realtime", action="store_true",
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
                         "the iterations the spare CPU allows (config: mapping_thread)")

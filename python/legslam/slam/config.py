@@ -172,6 +172,10 @@ class SLAMConfig:
     #: `min_reference_coverage` of trusted pixels, the last keyframe is the reference instead.
     reference_alpha: float = 0.8
     min_reference_coverage: float = 0.5
+    #: With `relocalise`: an alignment whose residual is more than this many times the recent
+    #: median is refused as lost, for relocalisation to place (the camera jumped; see
+    #: track_policy). On the built-in scene a jump tripled it.
+    jump_residual_ratio: float = 2.5
     #: Language features: encoder ("default", a model name or an ONNX path), its input size,
     #: the compressed dimension K, and how many keyframes' patches fit the PCA.
     features: bool = True
@@ -182,6 +186,32 @@ class SLAMConfig:
     pca_keyframes: int = 3
     #: A PCA fitted beforehand (.npz from legslam.features.PCA.save) instead of fitting one.
     pca_path: Optional[str] = None
+    #: Place recognition from keyframes' patch tokens (legslam.slam.place_recognition):
+    #: `relocalise` places a lost frame in the map again, `loop_closure` closes loops over a
+    #: keyframe pose graph. Either runs the encoder on keyframes, even with `features` off.
+    relocalise: bool = True
+    loop_closure: bool = True
+    #: Retrieval: the most similar keyframes tried, at least this alike (cosine of the mean
+    #: patch tokens).
+    place_candidates: int = 3
+    place_min_similarity: float = 0.7
+    #: Coarse alignment: mutually nearest patch tokens at least this alike, lifted with
+    #: depth; RANSAC inliers within this distance (m), and at least this many of them.
+    place_min_token_similarity: float = 0.5
+    place_ransac_threshold: float = 0.05
+    place_min_inliers: int = 10
+    #: Dense verification: the tracker's inlier ratio against the keyframe, at least this.
+    place_min_inlier_ratio: float = 0.5
+    #: Loop candidates are at least this many keyframes older than the new keyframe.
+    loop_min_gap: int = 15
+    #: Odometry edges between keyframes: standard deviation per metre moved (at least 10 cm
+    #: counted) and per radian turned (at least 5 degrees counted); loop edges: metres and
+    #: degrees. Odometry drifts 1-2% on 7-Scenes: these leave room for it, lest a true loop
+    #: look like an outlier.
+    odometry_sigma_translation: float = 0.1
+    odometry_sigma_rotation: float = 0.1
+    loop_sigma_translation: float = 0.01
+    loop_sigma_rotation: float = 0.5
     mapper: MapperOptions = field(default_factory=MapperOptions)
     tracker: TrackerOptions = field(default_factory=TrackerOptions)
 
@@ -234,6 +264,11 @@ class SLAMConfig:
             opts["levels"] = fitting_levels(width, height, self.tracker.finest_level)
         return opts
 
+    @property
+    def place_recognition(self) -> bool:
+        """Whether keyframes' places are kept (for relocalisation or loop closure)."""
+        return self.relocalise or self.loop_closure
+
     @classmethod
     def from_file(cls, path, **overrides) -> "SLAMConfig":
         """Reads a .toml, .json or .yaml file (only the keys given change a default)."""
@@ -283,9 +318,15 @@ _RANGES = {
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0),
+    "jump_residual_ratio": (1.0, _INF),
     "encoder_size": (28, _INF), "encoder_threads": (0, _INF),
     # Checked against the encoder's own dimension once it is loaded; the bound keeps an absurd
     # value from reaching the engine's allocations where the encoder does not say.
     "feature_dim": (1, 4096),
     "pca_keyframes": (1, _INF),
+    "place_candidates": (1, _INF), "place_min_similarity": (0.0, 1.0),
+    "place_min_token_similarity": (0.0, 1.0), "place_ransac_threshold": (1e-6, _INF),
+    "place_min_inliers": (3, _INF), "place_min_inlier_ratio": (0.0, 1.0), "loop_min_gap": (1, _INF),
+    "odometry_sigma_translation": (1e-6, _INF), "odometry_sigma_rotation": (1e-6, _INF),
+    "loop_sigma_translation": (1e-6, _INF), "loop_sigma_rotation": (1e-6, _INF),
 }

@@ -1,10 +1,11 @@
 """Keyframe features, off the tracking path: an encoder in a worker thread, a PCA fitted on the
-first keyframes' patches (or loaded), and the compressed grids handed to the map."""
+first keyframes' patches (or loaded), and the compressed grids handed to the map; the raw
+patch tokens to place recognition."""
 
 from __future__ import annotations
 
 import time
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -15,21 +16,24 @@ __all__ = ["FeatureFeed"]
 
 class FeatureFeed:
     """Features for keyframes: `submit` a keyframe's colour, `collect` what is ready (each
-    grid goes to `sink(keyframe id, grid)` once there is a PCA), `drain` at the end.
-    `timings` gets "extraction" and "compression" milliseconds per keyframe."""
+    grid goes to `sink(keyframe id, grid)` once there is a PCA; with no sink, no language
+    features are made), `drain` at the end. `tokens(keyframe id, unit patch tokens h x w x D)`,
+    when given, hears of each keyframe as it is encoded. `timings` gets "extraction" and
+    "compression" milliseconds per keyframe."""
 
-    def __init__(self, config, sink: Callable[[int, np.ndarray], None], timings: dict,
-                 encoder=None):
+    def __init__(self, config, sink: Optional[Callable[[int, np.ndarray], None]], timings: dict,
+                 encoder=None, tokens: Optional[Callable[[int, np.ndarray], None]] = None):
         c = config
-        self.config, self.sink, self.timings = c, sink, timings
+        self.config, self.sink, self.timings, self.tokens = c, sink, timings, tokens
         if encoder is None:
             encoder = Encoder(c.encoder, input_size=c.encoder_size, threads=c.encoder_threads)
         dim = getattr(encoder, "dim", None)
         if dim is not None and c.feature_dim > dim:
             raise ValueError(f"feature_dim is {c.feature_dim}, more than the {dim} dimensions the "
                              f"encoder ({getattr(encoder, 'path', c.encoder)}) gives: at most {dim}")
+        self.encoder = encoder
         self.extractor = AsyncExtractor(encoder)
-        self.pca = PCA.load(c.pca_path) if c.pca_path else None
+        self.pca = PCA.load(c.pca_path) if c.pca_path and sink is not None else None
         if self.pca is not None and self.pca.n_components != c.feature_dim:
             raise ValueError(f"{c.pca_path} compresses to {self.pca.n_components} dimensions, "
                              f"feature_dim is {c.feature_dim}")
@@ -47,12 +51,16 @@ class FeatureFeed:
         what there is, if it was still waiting for more keyframes)."""
         self.extractor.close()
         self.collect()
-        if self._waiting and self.pca is None:
+        if self._waiting and self.pca is None and self.sink is not None:
             self._fit()
         self._flush()
 
     def _take(self, r) -> None:
         self.timings["extraction"].append(r.extract_ms)
+        if self.tokens is not None:
+            self.tokens(int(r.key), r.features)
+        if self.sink is None:
+            return
         self._waiting.append((r.key, r.features))
         if self.pca is None and len(self._waiting) >= self.config.pca_keyframes:
             self._fit()

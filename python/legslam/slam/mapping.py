@@ -41,6 +41,10 @@ class InlineMapping:
     def set_features(self, kf_id: int, grid: np.ndarray) -> None:
         self._mapper.set_features(kf_id, grid)
 
+    def correct_keyframes(self, corrections: np.ndarray) -> None:
+        """Moves keyframe k by corrections[k] and the Gaussians it made with it."""
+        self._mapper.correct_keyframes(corrections)
+
     def after_frame(self, pose: np.ndarray, keyframe: bool) -> None:
         """A frame was tracked at `pose`: train."""
         self.stats.append(self._mapper.train(self._iters[keyframe]))
@@ -74,7 +78,11 @@ class ThreadedMapping:
         self._batch = batch
         self._commands: queue.SimpleQueue = queue.SimpleQueue()
         self._lock = threading.Lock()
-        self._reference: Optional[tuple] = None  # (pose, render)
+        self._reference: Optional[tuple] = None  # (pose, render, corrections applied before it)
+        # Keyframe corrections queued, and applied by the worker: a render from before the
+        # latest is no reference (the map moved since).
+        self._corrections_queued = 0
+        self._corrections_applied = 0
         self._reference_pose: Optional[np.ndarray] = None
         self._first_id = mapper.num_keyframes
         self._submitted = 0
@@ -103,16 +111,24 @@ class ThreadedMapping:
         self._check()
         self._commands.put(("set_features", (kf_id, grid)))
 
+    def correct_keyframes(self, corrections: np.ndarray) -> None:
+        """Queues moving keyframe k by corrections[k] and the Gaussians it made with it."""
+        self._check()
+        self._corrections_queued += 1
+        self._commands.put(("correct_keyframes", (np.array(corrections),)))
+
     def after_frame(self, pose: np.ndarray, keyframe: bool) -> None:
         """A frame was tracked at `pose`: the next reference is rendered there."""
         self._reference_pose = pose
 
     def reference(self, predicted: np.ndarray) -> tuple:
         """(pose, render at the tracking size) of the latest batch, (None, None) before the
-        first."""
+        first and until the map has taken the latest keyframe correction."""
         self._check()
         with self._lock:
-            return self._reference or (None, None)
+            if self._reference is None or self._reference[2] != self._corrections_queued:
+                return None, None
+            return self._reference[:2]
 
     @property
     def pending(self) -> bool:
@@ -147,6 +163,8 @@ class ThreadedMapping:
     def _apply(self, command: tuple) -> None:
         name, args = command
         getattr(self._mapper, name)(*args)
+        if name == "correct_keyframes":
+            self._corrections_applied += 1
         if name == "add_keyframe":
             self._iterations_since_keyframe = 0
             self._applied += 1
@@ -171,13 +189,13 @@ class ThreadedMapping:
                 self.stats.append(m.train(self._batch))
                 self._iterations_since_keyframe += self._batch
                 self._num_gaussians = m.num_gaussians
-                pose = self._reference_pose
+                pose, applied = self._reference_pose, self._corrections_applied
                 if pose is not None:
                     t0 = time.perf_counter()
                     r = m.render(pose, self._K_track, *self._track_size)
                     self.reference_s += time.perf_counter() - t0
                     with self._lock:
-                        self._reference = (pose, r)
+                        self._reference = (pose, r, applied)
             self._drain(wait=0.0)
             self._num_gaussians = m.num_gaussians
         except BaseException as e:  # surfaced to the tracker by _check

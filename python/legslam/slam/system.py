@@ -1,6 +1,9 @@
-"""The SLAM loop: per frame, track (`TrackingPolicy`), decide keyframes (`KeyframePolicy`),
-hand keyframes to the map (`InlineMapping` or `ThreadedMapping`) and their language features
-(`FeatureFeed`, asynchronous) as targets; at the end, the final mapping iterations.
+"""The SLAM loop: per frame, track (`TrackingPolicy`; a lost frame is placed again by the
+`Relocaliser`), decide keyframes (`KeyframePolicy`), hand keyframes to the map
+(`InlineMapping` or `ThreadedMapping`) and their language features (`FeatureFeed`,
+asynchronous) as targets; keyframes' patch tokens become places (`PlaceIndex`) that close
+loops (`LoopClosure`: the map and the trajectory move with the corrected keyframes); at the
+end, the final mapping iterations.
 
     slam = SLAM(SLAMConfig(), K, width, height)
     for frame in legslam.datasets.open(path):
@@ -28,7 +31,10 @@ from ..tracking import Tracker
 from .config import SLAMConfig
 from .feature_feed import FeatureFeed
 from .keyframes import KeyframePolicy
+from .loop_closure import LoopClosure
 from .mapping import InlineMapping, ThreadedMapping
+from .place_recognition import Place, PlaceIndex
+from .relocalise import Relocaliser
 from .track_policy import Tracked, TrackingPolicy
 from .trajectory import KeyframeView, Trajectory, View
 
@@ -44,7 +50,8 @@ FINAL_BATCH = 25
 class StepResult:
     index: int
     pose: np.ndarray
-    #: "init" (first frame), "ok", or "lost" (pose is the motion-model prediction).
+    #: "init" (first frame), "ok", "relocalised" (placed again after a loss), or "lost" (pose
+    #: is the motion-model prediction).
     state: str
     keyframe: bool
     reason: Optional[str] = None
@@ -64,11 +71,11 @@ class SLAM:
             raise ValueError(f"width and height must be positive, got {width}x{height}")
         warn_unusual_camera(self.K, self.width, self.height, "SLAM")
         self.timings: dict[str, list[float]] = {
-            "preprocessing": [], "tracking": [], "mapping": [], "frame": []}
+            "preprocessing": [], "tracking": [], "relocalisation": [], "mapping": [], "frame": []}
         self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
         # The encoder first: it checks feature_dim before the map is sized by it.
-        self._features = (FeatureFeed(c, lambda kf, grid: self._mapping.set_features(kf, grid),
-                                      self.feature_timings, encoder) if c.features else None)
+        self._features = self._feature_feed(encoder)
+        places = self._features is not None and c.place_recognition
         self.depth_range = (c.mapper.depth_min, c.mapper.depth_max)
         #: Frames without any depth measurement, and frames whose depth lay mostly outside
         #: `depth_range` (dropped: see `_prepare`).
@@ -80,7 +87,17 @@ class SLAM:
         self.mapper = _core.MapperCore(c.mapper_options(self.width), threads=threads)
         tracker = Tracker(threads=1 if c.mapping_thread else None,
                           **c.tracker_options(*self.track_size))
-        self.tracking = TrackingPolicy(tracker, self.K_track, c.reference_alpha, c.min_reference_coverage)
+        self.tracking = TrackingPolicy(tracker, self.K_track, c.reference_alpha, c.min_reference_coverage,
+                                       c.jump_residual_ratio if c.relocalise else float("inf"))
+        self.places = PlaceIndex(c, tracker, self.K_track) if places else None
+        self.relocaliser = (Relocaliser(self.places, self._features.encoder, self.K_track)
+                            if places and c.relocalise else None)
+        self.loops = LoopClosure(c, self.places) if places and c.loop_closure else None
+        # Keyframe views waiting for their patch tokens to become places; the keyframe the
+        # next one is tracked after (the pose graph's odometry edge).
+        self._unplaced: dict[int, KeyframeView] = {}
+        self._tracked_after: Optional[int] = None
+        self._corrections: Optional[np.ndarray] = None  # of loops closed, not applied yet
         self.keyframes = KeyframePolicy(c)
         self.trajectory = Trajectory()
         self.keyframe_frames: list[int] = []
@@ -89,6 +106,22 @@ class SLAM:
         self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch)
                          if c.mapping_thread else self._inline_mapping())
         self._final_stats: list = []
+
+    def _feature_feed(self, encoder) -> Optional[FeatureFeed]:
+        """The keyframes' encoder: language features, place recognition, or both. Without
+        language features a missing encoder only turns place recognition off (warned)."""
+        c = self.config
+        sink = (lambda kf, grid: self._mapping.set_features(kf, grid)) if c.features else None
+        tokens = self._place_seen if c.place_recognition else None
+        if not (c.features or c.place_recognition):
+            return None
+        try:
+            return FeatureFeed(c, sink, self.feature_timings, encoder, tokens=tokens)
+        except FileNotFoundError as e:
+            if c.features:
+                raise
+            log.warning("no relocalisation or loop closure: they need the image encoder (%s)", e)
+            return None
 
     def _inline_mapping(self) -> InlineMapping:
         c = self.config
@@ -104,10 +137,14 @@ class SLAM:
                 rgb, depth, small = self._prepare(i, rgb, depth)
             with self._timed("tracking"):
                 tracked = self._track(small)
+            if tracked.state == "lost" and self.relocaliser is not None:
+                with self._timed("relocalisation"):
+                    tracked = self._relocalise(i, rgb, small, tracked)
             with self._timed("mapping"):
                 keyframe = self._map(i, rgb, depth, small, tracked)
             self._record(tracked.pose, tracked.state)
-        return StepResult(i, tracked.pose, tracked.state, keyframe, tracked.reason)
+            self._correct()
+        return StepResult(i, self.trajectory.poses[i], tracked.state, keyframe, tracked.reason)
 
     def skip(self) -> StepResult:
         """Records a frame that could not be read as lost: the motion model's pose, no mapping."""
@@ -177,6 +214,13 @@ class SLAM:
         return self.tracking.track(small.rgb, small.depth, predicted,
                                    self._mapping.reference(predicted), fallbacks)
 
+    def _relocalise(self, i: int, rgb, small: View, tracked: Tracked) -> Tracked:
+        found = self.relocaliser.lost(i, rgb, small)
+        if found is None:
+            return tracked
+        self._tracked_after = found.keyframe
+        return Tracked(found.pose, "relocalised", tracked.coverage)
+
     def _map(self, i: int, rgb, depth, small: View, tracked: Tracked) -> bool:
         """Adds a keyframe if the policy wants one and trains (or lets the thread train);
         nothing from a lost frame. Returns whether the frame became a keyframe."""
@@ -184,6 +228,8 @@ class SLAM:
             if self._features is not None:
                 self._features.collect()
             return False
+        if self.relocaliser is not None:
+            self.relocaliser.tracked()
         keyframe = self.keyframes.wants(
             i, tracked.pose, tracked.coverage, self._last_keyframe, self._mapping.empty,
             coverage_counts=self._mapping.keeps_up(self.config.map_iters_keyframe))
@@ -192,6 +238,7 @@ class SLAM:
                                                tracked.pose)
             self._last_keyframe = KeyframeView(tracked.pose, small.rgb, small.depth, frame=i)
             self.keyframe_frames.append(i)
+            self._keyframe_made(kf_id, self._last_keyframe)
             if self._features is not None:
                 self._features.submit(kf_id, rgb)
         if self._features is not None:
@@ -199,6 +246,46 @@ class SLAM:
         self._mapping.after_frame(tracked.pose, keyframe)
         self._last_tracked = View(tracked.pose, small.rgb, small.depth)
         return keyframe
+
+    def _keyframe_made(self, kf_id: int, view: KeyframeView) -> None:
+        """A new keyframe: a node of the pose graph, and a place once its tokens come."""
+        if self.places is not None:
+            self._unplaced[kf_id] = view
+        if self.loops is not None:
+            self.loops.add_keyframe(view.frame, view.pose, self._tracked_after)
+        self._tracked_after = kf_id
+
+    def _place_seen(self, kf_id: int, tokens: np.ndarray) -> None:
+        """A keyframe's patch tokens came: its place, and a loop it closes, if any."""
+        view = self._unplaced.pop(kf_id)
+        pose = view.pose if self.loops is None else self.loops.poses[kf_id]
+        self.places.add(Place.of(kf_id, tokens, View(pose, view.rgb, view.depth), self.K_track))
+        if self.loops is None:
+            return
+        t0 = time.perf_counter()
+        found = self.loops.detect(kf_id)
+        if found is not None:
+            corrections = self.loops.close(kf_id, found, 1e3 * (time.perf_counter() - t0))
+            if corrections is not None:  # applied once the frame is recorded
+                self._corrections = (corrections if self._corrections is None
+                                     else corrections @ self._corrections)
+
+    def _correct(self) -> None:
+        """Moves keyframes by the loop closures' corrections (the map's Gaussians with them),
+        and every frame and view with its keyframe."""
+        if self._corrections is None:
+            return
+        corrections, self._corrections = self._corrections, None
+        self._mapping.correct_keyframes(corrections)
+        poses = np.stack(self.loops.poses)
+        for k in self.places.places:
+            self.places.set_pose(k, poses[k])
+        self.trajectory.follow(poses)
+        last = self._last_keyframe
+        self._last_keyframe = KeyframeView(poses[-1], last.rgb, last.depth, frame=last.frame)
+        tracked = max(i for i, s in enumerate(self.trajectory.states) if s != "lost")
+        self._last_tracked = View(self.trajectory.poses[tracked], self._last_tracked.rgb,
+                                  self._last_tracked.depth)
 
     def _record(self, pose: np.ndarray, state: str) -> None:
         self.trajectory.record(pose, state, len(self.keyframe_frames) - 1, self._last_keyframe.pose)
@@ -212,6 +299,19 @@ class SLAM:
     @property
     def states(self) -> list[str]:
         return self.trajectory.states
+
+    def trajectory_events(self) -> dict:
+        """For metrics.json: the relocalisations, the loops closed and the loop edges rejected
+        (frame, keyframes, correction size), and what the keyframes' places take in memory."""
+        out = {}
+        if self.relocaliser is not None:
+            out["relocalisations"] = [e.as_dict() for e in self.relocaliser.events]
+        if self.loops is not None:
+            out["loop_closures"] = [e.as_dict() for e in self.loops.events]
+            out["rejected_loops"] = list(self.loops.rejected)
+        if self.places is not None:
+            out["place_memory_mb"] = round(self.places.nbytes / 2 ** 20, 2)
+        return out
 
     @property
     def mapping(self):
@@ -250,6 +350,7 @@ class SLAM:
             self._mapping.stats, self._mapping.reference_s = threaded.stats, threaded.reference_s
         if self._features is not None:
             self._features.drain()
+            self._correct()
         total = self.config.final_iters if train else 0
         for done in range(0, total, FINAL_BATCH):
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.

@@ -3,10 +3,16 @@
 The map rendered at the predicted pose comes first; where it covers too little of the view, or
 the alignment against it fails, the last tracked frame, then the last keyframe. A frame is lost
 only when all of them fail.
+
+An alignment fails when the tracker calls it lost, and also when its residual jumps well
+above the recent ones: a camera carried elsewhere can still align with
+plenty of point-to-plane inliers (walls and floors are planes everywhere) but never with the
+colours, so its residual is several times the usual (3x on the built-in scene).
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Iterator, Optional
 
@@ -34,10 +40,12 @@ class TrackingPolicy:
     to recent views. `reference_alpha`: a rendered pixel is trusted where its alpha exceeds
     this; below `min_coverage` trusted pixels the render is no reference."""
 
-    def __init__(self, tracker: Tracker, K: np.ndarray, reference_alpha: float, min_coverage: float):
+    def __init__(self, tracker: Tracker, K: np.ndarray, reference_alpha: float, min_coverage: float,
+                 jump_ratio: float = float("inf")):
         self.tracker = tracker
         self.K = K
         self.reference_alpha, self.min_coverage = reference_alpha, min_coverage
+        self.jump = ResidualJump(jump_ratio)
         # (render, trusted pixels, prepared reference or None) of the last render seen: a
         # mapping thread's render serves many frames and is prepared once.
         self._prepared: Optional[tuple] = None
@@ -55,9 +63,10 @@ class TrackingPolicy:
         reason = None
         for ref in self._references(map_reference, fallbacks):
             res = self.tracker.track(rgb, depth, self.K, init_pose=predicted, reference=ref)
-            if not res.lost:
+            jumped = None if res.lost else self.jump.check(res.residual_rms)
+            if not res.lost and jumped is None:
                 return Tracked(res.pose, "ok", coverage)
-            reason = reason or res.reason
+            reason = reason or res.reason or jumped
         return Tracked(predicted, "lost", coverage, reason)
 
     def _references(self, map_reference: Optional[Reference],
@@ -84,3 +93,32 @@ class TrackingPolicy:
             reference = self.tracker.prepare_reference(rgb, depth, self.K, pose)
         self._prepared = (render, trusted, reference)
         return trusted, reference
+
+
+class ResidualJump:
+    """Whether an alignment's residual jumped above the recent ones: more than `ratio` times
+    their median (of the last 30 accepted, once there are 5; against whichever reference:
+    a frame aligns no worse than a render of the map). After 10 refusals in a row the
+    history starts again (the scene, not the camera, changed)."""
+
+    HISTORY, MIN_HISTORY, PATIENCE = 10, 5, 10
+
+    def __init__(self, ratio: float):
+        self.ratio = ratio
+        self._history: deque = deque(maxlen=self.HISTORY)
+        self._refused = 0
+
+    def check(self, residual: float) -> Optional[str]:
+        """None when `residual` is usual (and then remembered), else why not."""
+        h = self._history
+        if len(h) >= self.MIN_HISTORY:
+            usual = float(np.median(h))
+            if residual > self.ratio * usual:
+                self._refused += 1
+                if self._refused >= self.PATIENCE:
+                    self._history.clear()
+                    self._refused = 0
+                return f"residual {residual:.2f} jumped above {self.ratio:g}x the recent {usual:.2f}"
+        self._refused = 0
+        h.append(residual)
+        return None

@@ -30,7 +30,7 @@ class KeyframeView(View):
 
 
 class Trajectory:
-    """The poses and states ("init", "ok" or "lost") of the frames so far."""
+    """The poses and states ("init", "ok", "relocalised" or "lost") of the frames so far."""
 
     def __init__(self):
         self.poses: list[np.ndarray] = []
@@ -48,9 +48,9 @@ class Trajectory:
         self.states.append(state)
 
     def predict(self, last_tracked: np.ndarray) -> np.ndarray:
-        """Constant velocity from the last two frames; after a lost frame, the last tracked
-        pose (an extrapolated velocity would carry the camera away for good)."""
-        if len(self.poses) < 2 or "lost" in self.states[-2:]:
+        """Constant velocity from the last two frames; after a lost or relocalised frame, the
+        last tracked pose (an extrapolated velocity would carry the camera away for good)."""
+        if len(self.poses) < 2 or not {"lost", "relocalised"}.isdisjoint(self.states[-2:]):
             return last_tracked
         a, b = self.poses[-2], self.poses[-1]
         return b @ np.linalg.inv(a) @ b

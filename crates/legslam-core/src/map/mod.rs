@@ -1,6 +1,7 @@
 //! The Gaussian map and everything that changes it: growth from keyframes, pruning,
 //! densification, and training against keyframes (and their poses and exposures).
 
+pub mod correct;
 pub mod densify;
 pub mod exposure;
 pub mod features;

@@ -1,0 +1,125 @@
+"""Loop closure: a pose graph of keyframes (`PoseGraph`), with an odometry edge from each
+keyframe to the one it was tracked after, and a loop edge wherever a new keyframe recognises
+the place of an old one (outside the recent `loop_min_gap` keyframes; verified as
+relocalisation is). The optimised graph gives each keyframe a correction; the SLAM loop moves
+the map (each Gaussian with the keyframe that made it) and every frame with it.
+
+Odometry edges carry the error odometry really makes: a standard deviation that grows with
+the distance moved and the angle turned (`odometry_sigma_*`), never the near-certainty that
+would make a true loop look like an outlier to the solver's robust kernel.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+
+from .keyframes import rotation_deg
+from .place_recognition import PlaceIndex, Recognised
+from .pose_graph import PoseGraph, information, relative
+
+__all__ = ["LoopClosure", "LoopClosed"]
+
+log = logging.getLogger("legslam")
+
+
+@dataclass(frozen=True)
+class LoopClosed:
+    """A loop edge between keyframes `new` and `old` kept by the optimisation, and the largest
+    keyframe correction it made (a record for metrics.json)."""
+
+    frame: int
+    new: int
+    old: int
+    similarity: float
+    inlier_ratio: float
+    correction_cm: float
+    correction_deg: float
+    ms: float
+
+    def as_dict(self) -> dict:
+        return {"frame": self.frame, "keyframes": [self.old, self.new],
+                "similarity": round(self.similarity, 4), "inlier_ratio": round(self.inlier_ratio, 4),
+                "correction_cm": round(self.correction_cm, 3),
+                "correction_deg": round(self.correction_deg, 3), "ms": round(self.ms, 1)}
+
+
+class LoopClosure:
+    """The keyframe pose graph and loop detection. `config`: the SLAMConfig (loop_* and
+    odometry_sigma_* options); `places`: the keyframes' places."""
+
+    def __init__(self, config, places: PlaceIndex):
+        self.config, self.places = config, places
+        self.graph = PoseGraph()
+        #: Loops closed, and loop edges the optimisation rejected (as logged).
+        self.events: list[LoopClosed] = []
+        self.rejected: list[dict] = []
+        #: Per keyframe, the frame it was made from.
+        self._frames: list[int] = []
+
+    @property
+    def poses(self) -> list[np.ndarray]:
+        """Keyframe poses, as corrected by the loops closed so far."""
+        return self.graph.poses
+
+    def add_keyframe(self, frame: int, pose: np.ndarray, after: Optional[int]) -> None:
+        """The next keyframe (made from `frame`), tracked after keyframe `after` (the previous
+        one, or the one a relocalisation placed it against; None for the first)."""
+        k = self.graph.add_node(pose, fixed=not self.graph.poses)
+        self._frames.append(frame)
+        if after is not None:
+            measured = relative(self.graph.poses[after], pose)
+            self.graph.add_edge(after, k, measured, self._odometry_information(measured))
+
+    def _odometry_information(self, rel: np.ndarray) -> np.ndarray:
+        c = self.config
+        moved = float(np.linalg.norm(rel[:3, 3]))
+        turned = np.radians(rotation_deg(np.eye(4), rel))
+        return information(c.odometry_sigma_translation * max(moved, 0.1),
+                           c.odometry_sigma_rotation * max(turned, np.radians(5.0)))
+
+    def detect(self, keyframe: int) -> Optional[Recognised]:
+        """A verified loop from `keyframe` (its place known) to an old keyframe, or None."""
+        old = [k for k in self.places.places if k <= keyframe - self.config.loop_min_gap]
+        if not old or keyframe not in self.places.places:
+            return None
+        return self.places.recognise(self.places.places[keyframe], among=old)
+
+    def close(self, keyframe: int, found: Recognised, ms: float) -> Optional[np.ndarray]:
+        """Adds the loop edge `found` (keyframe's pose as recognised against `found.keyframe`)
+        and optimises. Returns each keyframe's correction (n x 4 x 4, world to world), or None
+        when the edge was rejected (then dropped and logged)."""
+        c = self.config
+        t0 = time.perf_counter()
+        before = np.stack(self.graph.poses)
+        old = found.keyframe
+        measured = relative(self.graph.poses[old], found.pose)
+        sigma_t, sigma_r = c.loop_sigma_translation, np.radians(c.loop_sigma_rotation)
+        edges = self.graph.edges + [None]  # as they are in the result: the new edge last
+        new_edge = self.graph.add_edge(old, keyframe, measured, information(sigma_t, sigma_r),
+                                       kind="loop")
+        edges[new_edge] = self.graph.edges[new_edge]
+        result = self.graph.optimize()
+        ms += 1e3 * (time.perf_counter() - t0)
+        for k in result.rejected:  # logged by the graph
+            self.rejected.append({"frame": self._frames[max(edges[k].i, edges[k].j)],
+                                  "keyframes": [edges[k].i, edges[k].j],
+                                  "chi2": round(float(result.chi2[k]), 2)})
+        if new_edge in result.rejected:
+            self.graph.poses = list(before)  # the other edges held them there
+            return None
+        after = np.stack(self.graph.poses)
+        corrections = after @ np.linalg.inv(before)
+        shift = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
+        turn = [rotation_deg(a, b) for a, b in zip(before, after)]
+        event = LoopClosed(self._frames[keyframe], keyframe, old, found.similarity,
+                           found.inlier_ratio, 100 * float(shift.max()), float(max(turn)), ms)
+        self.events.append(event)
+        log.info("loop closed: keyframe %d (frame %d) with keyframe %d; keyframes moved up to %.2f cm "
+                 "and %.2f deg (%.0f ms)", keyframe, event.frame, old, event.correction_cm,
+                 event.correction_deg, ms)
+        return corrections
