@@ -13,10 +13,10 @@ Depth is aligned to the colour camera by the SDK (rs.align), so frames carry the
 stream's intrinsics; depth is scaled by the device's depth units. Live, each frame taken is
 the newest the camera has delivered, and the frames that came while SLAM worked on the one
 before are dropped (counted from the camera's frame numbers); played back, every frame the
-SDK delivers is taken (it does not play in real time; it now and then loses a recording's
-first frame, which legslam's bag reader, without the SDK, does not). Each frame taken is written to `record_to` as a
-plain folder dataset (lossless PNGs, camera.json, timestamps.txt), so that the run can be
-evaluated, and run again offline.
+SDK delivers is taken (it does not play in real time; it delivers a recording's first frame's
+colour and depth apart, and that frame is skipped: legslam's bag reader, without the SDK, reads
+it). Each frame taken is written to `record_to` as a plain folder dataset (lossless PNGs,
+camera.json, timestamps.txt), so that the run can be evaluated, and run again offline.
 """
 
 from __future__ import annotations
@@ -35,8 +35,10 @@ log = logging.getLogger("legslam")
 
 # A live camera that delivers nothing for this long is gone; a recording played back is over.
 TIMEOUT_MS = 5000
-# How long a recording read to its end (playback stopped) is waited for, for frames queued.
-DRAIN_MS = 200
+# How long a recording read to its end is waited on for the framesets still on their way.
+DRAIN_MS = 250
+# Framesets a played-back recording's syncer holds (the playback waits while it is full).
+SYNC_QUEUE = 4
 
 
 def import_sdk():
@@ -67,39 +69,27 @@ class RealSenseCamera:
         self._sdk = sdk
         self._stop = threading.Event()
         self._pipe = self._writer = None
-        self.dropped = self._taken = 0
+        self.dropped = 0
 
     def start(self, record_to=None) -> None:
         """Starts the streams (a DatasetError saying why when they cannot) and reads the camera."""
         rs = self._sdk or import_sdk()
-        pipe, cfg = rs.pipeline(), rs.config()
         where = f"the RealSense recording {self.file}" if self.file else "a RealSense camera"
-        if self.file is not None:
-            if not self.file.is_file():
-                raise DatasetError(f"{self.file} does not exist")
-            cfg.enable_device_from_file(str(self.file), repeat_playback=False)
-        else:
-            w, h, fps = self._request
-            cfg.enable_stream(rs.stream.color, w, h, rs.format.rgb8, fps)
-            cfg.enable_stream(rs.stream.depth, w, h, rs.format.z16, fps)
+        if self.file is not None and not self.file.is_file():
+            raise DatasetError(f"{self.file} does not exist")
         try:
-            profile = pipe.start(cfg)
+            source = _Playback(rs, self.file) if self.file is not None else _Live(rs, *self._request)
         except RuntimeError as e:
             hint = "" if self.file else " (is one connected, and not in use by another program?)"
             raise DatasetError(f"cannot start {where}: {e}{hint}") from None
-        device = profile.get_device()
-        self._playback = None
-        if self.file is not None:
-            self._playback = device.as_playback()
-            self._playback.set_real_time(False)  # every frame, as fast as SLAM takes them
-        intr = profile.get_stream(rs.stream.color).as_video_stream_profile().get_intrinsics()
+        intr = source.colour.as_video_stream_profile().get_intrinsics()
         if any(intr.coeffs):
             log.warning("%s: the colour camera's distortion (%s) is ignored: frames are taken as pinhole "
                         "images", where, ", ".join(f"{c:.4g}" for c in intr.coeffs))
         self.K = make_K(intr.fx, intr.fy, intr.ppx, intr.ppy)
         self.width, self.height = int(intr.width), int(intr.height)
-        self.depth_scale = 1.0 / float(device.first_depth_sensor().get_depth_scale())
-        self._rs, self._pipe, self._align = rs, pipe, rs.align(rs.stream.color)
+        self.depth_scale = 1.0 / float(source.device.first_depth_sensor().get_depth_scale())
+        self._rs, self._pipe, self._align = rs, source, rs.align(rs.stream.color)
         if record_to is not None:
             self._writer = FolderWriter(record_to, self.K, self.width, self.height, self.depth_scale)
 
@@ -131,7 +121,7 @@ class RealSenseCamera:
                 if self._writer is not None:
                     self._writer.add(frame)
                 yield k, frame
-                k = self._taken = k + 1
+                k += 1
         finally:
             self.close()
 
@@ -151,11 +141,7 @@ class RealSenseCamera:
 
     def _next(self):
         """The next frameset: live, the newest delivered; None at a recording's end."""
-        timeout = TIMEOUT_MS
-        if self._taken and self._playback is not None and \
-                self._playback.current_status() == self._rs.playback_status.stopped:
-            timeout = DRAIN_MS  # the file is read to its end: only frames already queued are left
-        ok, frames = self._pipe.try_wait_for_frames(timeout)
+        ok, frames = self._pipe.try_wait_for_frames(TIMEOUT_MS)
         if not ok:
             if self.file is not None:
                 return None
@@ -177,3 +163,58 @@ class RealSenseCamera:
         if fmt in (rs.format.bgr8, rs.format.bgra8):
             return np.ascontiguousarray(img[..., 2::-1])
         raise DatasetError(f"{self.path}: colour frames in {fmt} cannot be read (rgb8, bgr8, rgba8, bgra8 can)")
+
+
+class _Live:
+    """A camera's colour and depth streams through the SDK's pipeline."""
+
+    def __init__(self, rs, width: int, height: int, fps: int):
+        cfg, self._pipe = rs.config(), rs.pipeline()
+        cfg.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
+        cfg.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
+        profile = self._pipe.start(cfg)
+        self.device, self.colour = profile.get_device(), profile.get_stream(rs.stream.color)
+        self.try_wait_for_frames, self.poll_for_frames = self._pipe.try_wait_for_frames, self._pipe.poll_for_frames
+
+    def stop(self) -> None:
+        self._pipe.stop()
+
+
+class _Playback:
+    """A recording's colour and depth sensors into one syncer, started only once the playback
+    is made not real-time: then it waits for each frame to be taken, and reads every one. (A
+    pipeline starts playing before it can be told so, and loses the first frames a few runs in
+    ten; the syncer still delivers the very first frame's two streams apart, and that frame is
+    skipped.)"""
+
+    def __init__(self, rs, file: Path):
+        self.device = rs.context().load_device(str(file))
+        self._playback, self._stopped = self.device.as_playback(), rs.playback_status.stopped
+        self._playback.set_real_time(False)
+        self._sync, self._sensors, kinds = rs.syncer(SYNC_QUEUE), [], {}
+        for sensor in self.device.query_sensors():  # a D405 has both streams on one sensor
+            profiles = [p for p in sensor.get_stream_profiles() if p.stream_type() in (rs.stream.color, rs.stream.depth)]
+            kinds.update((p.stream_type(), p) for p in profiles)
+            if profiles:
+                sensor.open(profiles)
+                self._sensors.append(sensor)
+        if len(kinds) < 2:
+            raise RuntimeError("the recording has no colour stream" if rs.stream.depth in kinds
+                               else "the recording has no depth stream")
+        self.colour = kinds[rs.stream.color]
+        for sensor in self._sensors:
+            sensor.start(self._sync)
+
+    def try_wait_for_frames(self, timeout_ms: int):
+        """The next frameset, waited for in slices: the playback may stop while it is waited for."""
+        for _ in range(max(1, timeout_ms // DRAIN_MS)):
+            stopped = self._playback.current_status() == self._stopped
+            ok, frames = self._sync.try_wait_for_frames(DRAIN_MS)
+            if ok or stopped:  # read to its end, and nothing more came for DRAIN_MS
+                return ok, frames
+        return False, None
+
+    def stop(self) -> None:
+        for sensor in self._sensors:
+            sensor.stop()
+            sensor.close()
