@@ -361,6 +361,18 @@ def test_a_bag_without_depth_or_camera_info_says_what_is_missing(shots, tmp_path
     assert e.value.code == 2 and "expected fx,fy,cx,cy (four numbers), got '1,2,3'" in capsys.readouterr().err
 
 
+def test_a_ros2_bag_folder_named_like_a_ros1_file_says_to_rename_it(shots, tmp_path, capsys):
+    from recordings import write_bag
+
+    s, K = shots
+    bag = write_bag(tmp_path / "rec.bag", s, K, storage="sqlite3")  # a folder: metadata.yaml, .db3
+    assert main(["run", str(bag), "--out", str(tmp_path / "run"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert f"{bag} is a ROS2 bag folder whose name ends in .bag" in err and "rename the folder (to rec" in err
+    renamed = bag.rename(tmp_path / "rec")
+    assert main(["run", str(renamed), "--out", str(tmp_path / "run"), *FAST]) == 0
+
+
 @pytest.mark.parametrize("storage", ["ros1", "sqlite3", "mcap"])
 def test_a_truncated_bag_is_named(shots, tmp_path, capsys, storage):
     from recordings import write_bag

@@ -149,6 +149,9 @@ class BagSequence(Sequence):
             from rosbags.typesys import Stores, get_typestore
         except ImportError:
             raise DatasetError(f"{p}: reading ROS bags needs rosbags: pip install 'legslam[bags]'") from None
+        if p.is_dir() and p.suffix == ".bag":  # rosbags takes any *.bag for a ROS1 file
+            raise DatasetError(f"{p} is a ROS2 bag folder whose name ends in .bag, which the bag library "
+                               f"reads as a ROS1 file: rename the folder (to {p.with_suffix('').name}, say)")
         with _reading(f"bag {p} (cut short, or not a bag?)"):
             # ROS2 bags of older recorders carry no message definitions: the standard ones.
             self._reader = AnyReader([p], default_typestore=get_typestore(Stores.LATEST))
