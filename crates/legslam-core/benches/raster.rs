@@ -1,6 +1,8 @@
 //! Rasterizer benchmark on a realistic scene: one Gaussian per valid pixel of a real 640x480
 //! 7-Scenes depth frame (from `../shared/data`, beside the checkout), rendered from a view
-//! 5 cm and 2 degrees off the frame's own, at 640x480, for K = 0 and 64 on 1 and 2 threads.
+//! 5 cm and 2 degrees off the frame's own, at 640x480, for K = 0 and 64 on 1 and 2 threads;
+//! K = 64 both at every pixel and 4 times coarser (160x120, `feature_scale` 4: about the
+//! feature target's own resolution, as the mapper trains them).
 //! Without the data folder a synthetic wall of the same size stands in. Each case runs the
 //! portable compositing and the AVX2 one (where the CPU has it) alternately; the ratio is the
 //! speed-up over the portable path.
@@ -130,25 +132,26 @@ fn camera() -> Camera {
     Camera::new(intr, &w2c).unwrap()
 }
 
-fn options(simd: Simd) -> RenderOptions {
+fn options(simd: Simd, feature_scale: usize) -> RenderOptions {
     RenderOptions {
         simd,
+        feature_scale,
         ..Default::default()
     }
 }
 
 /// Forward, or forward and backward, of the scene with `k` features through `simd`, with the
 /// buffers a training loop keeps.
-fn pass(k: usize, simd: Simd, backward: bool) -> impl FnMut() {
+fn pass(k: usize, scale: usize, simd: Simd, backward: bool) -> impl FnMut() {
     let (g, cam) = (gaussians(k), camera());
     let d_color = vec![0.1; W * H * 3];
     let d_depth = vec![0.1; W * H];
-    let d_feat = vec![0.01; W * H * k];
+    let d_feat = vec![0.01; (W / scale) * (H / scale) * k];
     let mut r = Rendered::default();
     let mut scratch = BackwardScratch::default();
     let mut grads = Gradients::default();
     move || {
-        render_into(&g, &cam, &options(simd), &mut r).unwrap();
+        render_into(&g, &cam, &options(simd, scale), &mut r).unwrap();
         if backward {
             let image_grads = ImageGrads {
                 color: Some(&d_color),
@@ -177,7 +180,7 @@ fn main() {
         &[("portable", Simd::Portable)]
     };
     for backward in [false, true] {
-        for k in [0, 64] {
+        for (k, scale) in [(0, 1), (64, 1), (64, 4)] {
             for threads in [1, 2] {
                 let pool = rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
@@ -188,14 +191,19 @@ fn main() {
                 } else {
                     "forward"
                 };
-                let case = format!("{what} K{k} t{threads}");
+                let at = if scale > 1 {
+                    format!("/{scale}")
+                } else {
+                    String::new()
+                };
+                let case = format!("{what} K{k}{at} t{threads}");
                 if !common::selected(&case) {
                     continue;
                 }
                 let mut variants: Vec<_> = simds
                     .iter()
                     .map(|&(name, simd)| {
-                        let mut run = pass(k, simd, backward);
+                        let mut run = pass(k, scale, simd, backward);
                         let pool = &pool;
                         variant(name, move || pool.install(&mut run))
                     })
