@@ -88,7 +88,8 @@ class SLAM:
         tracker = Tracker(threads=1 if c.mapping_thread else None,
                           **c.tracker_options(*self.track_size))
         self.tracking = TrackingPolicy(tracker, self.K_track, c.reference_alpha, c.min_reference_coverage,
-                                       c.jump_residual_ratio if c.relocalise else float("inf"))
+                                       c.jump_residual_ratio if c.relocalise else float("inf"),
+                                       c.map_reference_every)
         self.places = PlaceIndex(c, tracker, self.K_track) if places else None
         self.relocaliser = (Relocaliser(self.places, self._features.encoder, self.K_track)
                             if places and c.relocalise else None)

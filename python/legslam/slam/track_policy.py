@@ -1,8 +1,11 @@
 """Which reference a frame is tracked against, and what counts as tracked.
 
-The map rendered at the predicted pose comes first; where it covers too little of the view, or
-the alignment against it fails, the last tracked frame, then the last keyframe. A frame is lost
-only when all of them fail.
+Every `map_every`-th frame the map rendered at the predicted pose comes first; where it covers
+too little of the view, or the alignment against it fails, the last tracked frame, then the last
+keyframe. The frames between come first against the last tracked frame, then the map, then the
+last keyframe: a frame aligns more precisely with the frame before it than with a render of the
+map (sharper, and measured a moment ago), and the map's turns keep that chain from drifting. A
+frame is lost only when all of them fail.
 
 An alignment fails when the tracker calls it lost, and also when its residual jumps well
 above the recent ones: a camera carried elsewhere can still align with
@@ -38,14 +41,16 @@ class Tracked:
 class TrackingPolicy:
     """Tracks frames (at the tracking size, with intrinsics `K`) against the map, falling back
     to recent views. `reference_alpha`: a rendered pixel is trusted where its alpha exceeds
-    this; below `min_coverage` trusted pixels the render is no reference."""
+    this; below `min_coverage` trusted pixels the render is no reference. `map_every`: the map
+    comes first every this many frames, the last tracked frame first in between."""
 
     def __init__(self, tracker: Tracker, K: np.ndarray, reference_alpha: float, min_coverage: float,
-                 jump_ratio: float = float("inf")):
+                 jump_ratio: float = float("inf"), map_every: int = 1):
         self.tracker = tracker
         self.K = K
         self.reference_alpha, self.min_coverage = reference_alpha, min_coverage
         self.jump = ResidualJump(jump_ratio)
+        self.map_every, self._tracked = map_every, 0
         # (render, trusted pixels, prepared reference or None) of the last render seen: a
         # mapping thread's render serves many frames and is prepared once.
         self._prepared: Optional[tuple] = None
@@ -61,7 +66,9 @@ class TrackingPolicy:
         coverage = 1.0 if trusted is None else float(trusted[measured].mean() if measured.any()
                                                      else trusted.mean())
         reason = None
-        for ref in self._references(map_reference, fallbacks):
+        self._tracked += 1
+        map_first = self._tracked % self.map_every == 0
+        for ref in self._references(map_reference, fallbacks, map_first):
             res = self.tracker.track(rgb, depth, self.K, init_pose=predicted, reference=ref)
             jumped = None if res.lost else self.jump.check(res.residual_rms)
             if not res.lost and jumped is None:
@@ -69,13 +76,20 @@ class TrackingPolicy:
             reason = reason or res.reason or jumped
         return Tracked(predicted, "lost", coverage, reason)
 
-    def _references(self, map_reference: Optional[Reference],
-                    fallbacks: tuple[View, ...]) -> Iterator[Reference]:
-        """The references in order, each prepared only when the one before has failed."""
+    def _references(self, map_reference: Optional[Reference], fallbacks: tuple[View, ...],
+                    map_first: bool) -> Iterator[Reference]:
+        """The references in order (the map first, or second after the first of `fallbacks`),
+        each prepared only when the one before has failed."""
+        views = list(fallbacks)
+        if not map_first and views:
+            yield self._prepare(views.pop(0))
         if map_reference is not None:
             yield map_reference
-        for view in fallbacks:
-            yield self.tracker.prepare_reference(view.rgb, view.depth, self.K, view.pose)
+        for view in views:
+            yield self._prepare(view)
+
+    def _prepare(self, view: View) -> Reference:
+        return self.tracker.prepare_reference(view.rgb, view.depth, self.K, view.pose)
 
     def _map_reference(self, pose, render) -> tuple:
         """(the pixels where the render is trusted, the render prepared as a reference or None
