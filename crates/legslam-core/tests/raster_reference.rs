@@ -4,9 +4,10 @@ mod common;
 
 use common::{hard_scene, random_scene, reference_render, Scene};
 use legslam_core::raster::{render, RasterConfig, RenderOptions};
+use legslam_core::Real;
 
 /// Largest absolute difference, and the fraction of values off by more than `tol`.
-fn compare(fast: &[legslam_core::Real], reference: &[f64], tol: f64) -> (f64, f64) {
+fn compare(fast: &[Real], reference: &[f64], tol: f64) -> (f64, f64) {
     assert_eq!(fast.len(), reference.len());
     let mut worst: f64 = 0.0;
     let mut off = 0;
@@ -20,6 +21,26 @@ fn compare(fast: &[legslam_core::Real], reference: &[f64], tol: f64) -> (f64, f6
     (worst, off as f64 / fast.len().max(1) as f64)
 }
 
+/// Each image of the fast pass agrees with the reference's: f64 builds to rounding; f32 builds
+/// may flip a cut-off decision (alpha at exactly 1/255, or the stop) on a rare pixel, which
+/// moves it by at most a few percent.
+fn assert_agree(what: &str, images: &[(&str, &Vec<Real>, &Vec<f64>)]) {
+    let (tol, max_flipped) = if cfg!(feature = "f64") {
+        (1e-9, 0.0)
+    } else {
+        (2e-4, 0.003)
+    };
+    for &(name, a, b) in images {
+        let (worst, flipped) = compare(a, b, tol);
+        assert!(
+            flipped <= max_flipped,
+            "{what}{name}: {:.3}% of values differ by more than {tol} (worst {worst})",
+            100.0 * flipped
+        );
+        assert!(worst < 0.05, "{what}{name}: worst difference {worst}");
+    }
+}
+
 fn check(scene: &Scene, sh_degree: usize, cfg: RasterConfig) {
     let opts = RenderOptions {
         sh_degree,
@@ -28,27 +49,15 @@ fn check(scene: &Scene, sh_degree: usize, cfg: RasterConfig) {
     };
     let fast = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
     let reference = reference_render(scene, sh_degree, &cfg);
-    // f64 builds agree to rounding; f32 builds may flip a cut-off decision (alpha at exactly
-    // 1/255, or the stop) on a rare pixel, which moves it by at most a few percent.
-    let (tol, max_flipped) = if cfg!(feature = "f64") {
-        (1e-9, 0.0)
-    } else {
-        (2e-4, 0.003)
-    };
-    for (name, a, b) in [
-        ("color", &fast.color, &reference.color),
-        ("depth", &fast.depth, &reference.depth),
-        ("alpha", &fast.alpha, &reference.alpha),
-        ("features", &fast.features, &reference.features),
-    ] {
-        let (worst, flipped) = compare(a, b, tol);
-        assert!(
-            flipped <= max_flipped,
-            "{name}: {:.3}% of values differ by more than {tol} (worst {worst})",
-            100.0 * flipped
-        );
-        assert!(worst < 0.05, "{name}: worst difference {worst}");
-    }
+    assert_agree(
+        "",
+        &[
+            ("color", &fast.color, &reference.color),
+            ("depth", &fast.depth, &reference.depth),
+            ("alpha", &fast.alpha, &reference.alpha),
+            ("features", &fast.features, &reference.features),
+        ],
+    );
     assert!(
         fast.alpha.iter().any(|&a| a > 0.5),
         "the scene should cover pixels"
@@ -135,35 +144,20 @@ fn features_at_a_coarser_scale_match_the_smaller_images_reference() {
         let fast = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
         let full = reference_render(&scene, 1, &cfg);
         let mut small = scene.clone();
-        let (i, s) = (&scene.intr, scale as f64);
-        small.intr.fx = i.fx / s;
-        small.intr.fy = i.fy / s;
-        small.intr.cx = (i.cx + 0.5) / s - 0.5;
-        small.intr.cy = (i.cy + 0.5) / s - 0.5;
-        small.intr.width = i.width / scale;
-        small.intr.height = i.height / scale;
+        small.intr = scene.intr.scaled(1.0 / scale as f64);
         let coarse = reference_render(&small, 1, &cfg);
         assert_eq!(
             (fast.feature_width, fast.feature_height),
             (small.intr.width, small.intr.height)
         );
-        let (tol, max_flipped) = if cfg!(feature = "f64") {
-            (1e-9, 0.0)
-        } else {
-            (2e-4, 0.003)
-        };
-        for (name, a, b) in [
-            ("color", &fast.color, &full.color),
-            ("alpha", &fast.alpha, &full.alpha),
-            ("features", &fast.features, &coarse.features),
-        ] {
-            let (worst, flipped) = compare(a, b, tol);
-            assert!(
-                flipped <= max_flipped && worst < 0.05,
-                "scale {scale} {name}: {:.3}% off by more than {tol}, worst {worst}",
-                100.0 * flipped
-            );
-        }
+        assert_agree(
+            &format!("scale {scale} "),
+            &[
+                ("color", &fast.color, &full.color),
+                ("alpha", &fast.alpha, &full.alpha),
+                ("features", &fast.features, &coarse.features),
+            ],
+        );
         assert!(fast.features.iter().any(|v| v.abs() > 0.1));
     }
 }
