@@ -148,7 +148,16 @@ impl Loss {
             }
         }
         match (inputs.features, grads.features) {
-            (Some(f), Some(g)) => t.feature = self.feature_term(&f, g)?,
+            (Some(f), Some(g)) => {
+                t.feature = cosine::cosine_into(
+                    f.rendered,
+                    f.target,
+                    f.channels,
+                    f.mask,
+                    g,
+                    Emit::set(w.feature),
+                )?;
+            }
             (None, None) => {}
             _ => {
                 return Err(
@@ -161,21 +170,6 @@ impl Loss {
             + f64::from(w.depth) * t.depth_l1
             + f64::from(w.feature) * t.feature;
         Ok(t)
-    }
-}
-
-impl Loss {
-    /// The feature term alone (for a feature map rendered at its own resolution): returns
-    /// mean(1 - cos) and writes `weights.feature` times its gradient into `grad`.
-    pub fn feature_term(&self, f: &FeatureInputs, grad: &mut [Real]) -> Result<f64, String> {
-        cosine::cosine_into(
-            f.rendered,
-            f.target,
-            f.channels,
-            f.mask,
-            grad,
-            Emit::set(self.weights.feature),
-        )
     }
 }
 
