@@ -4,11 +4,13 @@
 //! as in a SLAM run), the SLAM's mapper options at 640x480 (training at 320x240, SH degree 3,
 //! K = 64 features on a smooth synthetic patch grid). Then single iterations (render + loss +
 //! backward + step) are timed, per phase, on 2 threads, with the portable compositing and the
-//! AVX2 one alternately.
+//! AVX2 one alternately, and on a second map grown the same way without pruning by
+//! contribution.
 //!
 //! cargo bench -p legslam-core --bench mapper
 //! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
-//! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20).
+//! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20),
+//! LEGSLAM_BENCH_UNPRUNED (0 skips the second map).
 
 #[path = "common/mod.rs"]
 mod common;
@@ -98,36 +100,48 @@ fn main() {
     };
     config.grow.stride = 2;
     config.adam.sparse = std::env::var("LEGSLAM_BENCH_DENSE_ADAM").is_err();
-    let mut mapper = Mapper::new(config).unwrap();
-    let intr = Intrinsics::from_array([F, F, 320.0, 240.0], W, H);
-    let mut rng = Rng::new(1);
-    let t = Instant::now();
-    pool.install(|| {
-        for i in (0..1000).step_by(12) {
-            let (rgb, depth, pose) = frame(&dir, i);
-            let (id, _) = mapper.add_keyframe(rgb, depth, intr, pose).unwrap();
-            if k > 0 {
-                mapper.set_features(id, feature_grid(&mut rng, k)).unwrap();
+    let grow = |config: MapperConfig| {
+        let mut mapper = Mapper::new(config).unwrap();
+        let intr = Intrinsics::from_array([F, F, 320.0, 240.0], W, H);
+        let mut rng = Rng::new(1);
+        let t = Instant::now();
+        pool.install(|| {
+            for i in (0..1000).step_by(12) {
+                let (rgb, depth, pose) = frame(&dir, i);
+                let (id, _) = mapper.add_keyframe(rgb, depth, intr, pose).unwrap();
+                if k > 0 {
+                    mapper.set_features(id, feature_grid(&mut rng, k)).unwrap();
+                }
+                mapper.train(setup_iters).unwrap();
             }
-            mapper.train(setup_iters).unwrap();
-        }
-    });
-    eprintln!(
-        "map: {} Gaussians, {} keyframes, grown in {:.0} s",
-        mapper.map.len(),
-        mapper.keyframes.len(),
-        t.elapsed().as_secs_f64()
-    );
-    // Both paths give the same bits, so alternating them trains the map as either would.
-    let variants: &[(&str, bool)] = if avx2_available() {
-        &[("portable", false), ("avx2", true)]
-    } else {
-        &[("portable", false)]
+        });
+        eprintln!(
+            "map: {} Gaussians, {} keyframes, grown in {:.0} s",
+            mapper.map.len(),
+            mapper.keyframes.len(),
+            t.elapsed().as_secs_f64()
+        );
+        mapper
     };
+    // The map with the portable and the AVX2 compositing (the same bits, so alternating them
+    // trains the map as either would), and one grown without pruning by contribution
+    // (LEGSLAM_BENCH_UNPRUNED=0 skips it), on AVX2 where the CPU has it.
+    let mut mappers = vec![grow(config.clone())];
+    let mut variants: Vec<(&str, usize, bool)> = vec![("portable", 0, false)];
+    if avx2_available() {
+        variants.push(("avx2", 0, true));
+    }
+    if env("LEGSLAM_BENCH_UNPRUNED", 1) != 0 {
+        let mut unpruned = config.clone();
+        unpruned.prune.min_contribution = 0.0;
+        mappers.push(grow(unpruned));
+        variants.push(("unpruned", 1, avx2_available()));
+    }
     let mut phases = vec![[(); 6].map(|_| Vec::new()); variants.len()];
     pool.install(|| {
         for _ in 0..iters {
-            for (&(_, simd), times) in variants.iter().zip(&mut phases) {
+            for (&(_, m, simd), times) in variants.iter().zip(&mut phases) {
+                let mapper = &mut mappers[m];
                 mapper.config.simd = simd;
                 let (t, cpu) = (Instant::now(), common::cpu_ms());
                 let r = mapper.train(1).unwrap();
@@ -140,9 +154,10 @@ fn main() {
             }
         }
     });
+    let sizes: Vec<String> = mappers.iter().map(|m| m.map.len().to_string()).collect();
     println!(
         "mapper iteration, {} Gaussians, K = {k}, 2 threads, median of {iters} (ms; ratio to {}):",
-        mapper.map.len(),
+        sizes.join(" / "),
         variants[0].0
     );
     let medians: Vec<Vec<f64>> = phases
@@ -156,7 +171,7 @@ fn main() {
         let cells: Vec<String> = variants
             .iter()
             .zip(&medians)
-            .map(|((v, _), m)| format!("{v} {:7.1} (x{:.2})", m[i], medians[0][i] / m[i]))
+            .map(|((v, _, _), m)| format!("{v} {:7.1} (x{:.2})", m[i], medians[0][i] / m[i]))
             .collect();
         println!("  {name:<9} {}", cells.join("   "));
     }

@@ -152,13 +152,13 @@ fn pruning_removes_transparent_and_huge_gaussians() {
     one(&mut map, -3.0, 0.0); // kept
     one(&mut map, -3.0, -5.0); // opacity 0.0067 < 0.02
     one(&mut map, 0.0, 0.0); // 1 m > 0.1 x extent 2 m
-    let keep = keep_mask(&map, 2.0, None, &PruneConfig::default());
+    let keep = keep_mask(&map, 2.0, None, None, &PruneConfig::default());
     assert_eq!(keep, vec![true, false, false]);
     let screen = PruneConfig {
         max_screen_radius: 10.0,
         ..Default::default()
     };
-    let keep = keep_mask(&map, 100.0, Some(&[5.0, 5.0, 50.0]), &screen);
+    let keep = keep_mask(&map, 100.0, Some(&[5.0, 5.0, 50.0]), None, &screen);
     assert_eq!(keep, vec![true, false, false]);
 }
 

@@ -261,3 +261,53 @@ fn a_share_of_iterations_revisits_older_keyframes() {
     };
     assert!(Mapper::new(bad).err().unwrap().contains("revisit"));
 }
+
+/// How many Gaussians lie beyond `z` (the camera looks along +z from the origin).
+fn beyond(m: &Mapper, z: Real) -> usize {
+    m.map.means.chunks_exact(3).filter(|p| p[2] > z).count()
+}
+
+#[test]
+fn gaussians_hidden_behind_a_nearer_surface_are_pruned_by_contribution() {
+    // A far wall, then a nearer one in front of it at the same pose, trained alone: the far
+    // wall's Gaussians end up behind an opaque surface in every view.
+    let run = |min_contribution: Real| {
+        let mut cfg = MapperConfig {
+            finest_level: 0,
+            grow_level: 1,
+            window: 1,
+            revisit: 0.0,
+            ..Default::default()
+        };
+        cfg.densify.interval = 10;
+        cfg.densify.grad_threshold = 1e9; // pruning alone
+        cfg.prune.min_contribution = min_contribution;
+        let mut m = Mapper::new(cfg).unwrap();
+        let (rgb, depth, k) = wall(64, 48);
+        let far: Vec<Real> = depth.iter().map(|d| d + 2.0).collect();
+        m.add_keyframe(rgb.clone(), far, k, Pose::identity())
+            .unwrap();
+        m.train(20).unwrap();
+        let hidden = beyond(&m, 3.0);
+        let red: Vec<Real> = rgb.chunks_exact(3).flat_map(|_| [0.9, 0.1, 0.1]).collect();
+        let (_, near) = m.add_keyframe(red, depth, k, Pose::identity()).unwrap();
+        m.train(60).unwrap();
+        // The loss on the near wall's view, once more without changing the map's shape.
+        let loss = m.train(1).unwrap().last.total;
+        (hidden, near, beyond(&m, 3.0), loss)
+    };
+    let (hidden, near, kept_off, loss_off) = run(0.0);
+    assert!(hidden > 100 && near > 100, "{hidden} far, {near} near");
+    let (_, _, kept_on, loss_on) = run(0.25);
+    assert!(
+        kept_off > hidden / 2,
+        "without the rule: {kept_off} of {hidden} kept"
+    );
+    assert!(kept_on < hidden / 10, "with it: {kept_on} of {hidden} kept");
+    // The rule also takes the near wall's most shadowed Gaussians (a few percent more loss
+    // here); a threshold 4x higher left holes (12x the loss).
+    assert!(
+        loss_on < 1.3 * loss_off,
+        "the visible wall's loss: {loss_on} with the rule, {loss_off} without"
+    );
+}

@@ -3,7 +3,7 @@
 mod common;
 
 use common::{hard_scene, random_scene, reference_render, Scene};
-use legslam_core::raster::{render, RasterConfig, RenderOptions};
+use legslam_core::raster::{backward, render, ImageGrads, RasterConfig, RenderOptions};
 use legslam_core::Real;
 
 /// Largest absolute difference, and the fraction of values off by more than `tol`.
@@ -58,6 +58,29 @@ fn check(scene: &Scene, sh_degree: usize, cfg: RasterConfig) {
             ("features", &fast.features, &reference.features),
         ],
     );
+    // What the backward walk sums of each Gaussian's blending weights.
+    let g = scene.gaussians();
+    let walked = backward(&g, &scene.camera(), &fast, &ImageGrads::default()).unwrap();
+    let tol = |b: f64| if cfg!(feature = "f64") { 1e-9 } else { 1e-3 } * (1.0 + b);
+    let off = (walked.contribution.iter().zip(&reference.weights))
+        .filter(|(a, b)| (**a as f64 - **b).abs() > tol(**b))
+        .count();
+    assert!(
+        off as f64 <= 0.005 * g.len() as f64,
+        "contribution: {off} of {} Gaussians differ from the reference's weights",
+        g.len()
+    );
+    for (i, (a, b)) in walked
+        .contribution
+        .iter()
+        .zip(&reference.weights)
+        .enumerate()
+    {
+        assert!(
+            (*a as f64 - b).abs() <= 0.05 * (1.0 + b),
+            "contribution of Gaussian {i}: {a} against the reference's {b}"
+        );
+    }
     assert!(
         fast.alpha.iter().any(|&a| a > 0.5),
         "the scene should cover pixels"

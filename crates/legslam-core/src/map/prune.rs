@@ -1,5 +1,6 @@
-//! Pruning: Gaussians that have become transparent, or grown too large in the world or on
-//! screen, are removed.
+//! Pruning: Gaussians that have become transparent, grown too large in the world or on
+//! screen, or that make next to nothing of the views they are in (hidden behind others), are
+//! removed.
 
 use super::store::GaussianMap;
 use crate::raster::math::sigmoid;
@@ -14,6 +15,12 @@ pub struct PruneConfig {
     /// Remove when the screen-space extent exceeds this many pixels in a training view
     /// (0 disables).
     pub max_screen_radius: Real,
+    /// Remove when, over the training views a Gaussian was on screen in since the last
+    /// pruning (at least `contribution_views` of them), its blending weights summed over each
+    /// view's pixels average below this many full-resolution pixels (0 disables): it is
+    /// hidden or negligible wherever it is seen, yet costs as much to render as any other.
+    pub min_contribution: Real,
+    pub contribution_views: usize,
 }
 
 impl Default for PruneConfig {
@@ -22,16 +29,59 @@ impl Default for PruneConfig {
             min_opacity: 0.02,
             max_world_scale: 0.1,
             max_screen_radius: 0.0,
+            // On 7-Scenes (1000 frames, synchronous) 42% fewer Gaussians, +0.13 dB, RSS
+            // -165 MB; on a 400-frame Replica render 15% fewer at the same PSNR (-0.02 dB);
+            // 1.0 took 0.4 dB from the Replica map.
+            min_contribution: 0.5,
+            contribution_views: 3,
         }
     }
 }
 
+/// Per Gaussian since the last pruning: the training views it was on screen in, and its
+/// contribution (blending weights summed over a view's pixels, in full-resolution pixels)
+/// summed over them.
+#[derive(Clone, Debug, Default)]
+pub struct Contributions {
+    pub sum: Vec<Real>,
+    pub views: Vec<u32>,
+}
+
+impl Contributions {
+    /// Adds one view: `contribution` per Gaussian in the render's pixels, each of which
+    /// covers `pixel_area` full-resolution pixels; `radii` > 0 marks the Gaussians on screen
+    /// (`rows`, sorted, holds every one of them).
+    pub fn add(&mut self, contribution: &[Real], radii: &[Real], rows: &[u32], pixel_area: Real) {
+        self.resize(radii.len());
+        for &i in rows {
+            let i = i as usize;
+            if radii[i] > 0.0 {
+                self.sum[i] += contribution[i] * pixel_area;
+                self.views[i] += 1;
+            }
+        }
+    }
+
+    pub fn resize(&mut self, n: usize) {
+        self.sum.resize(n, 0.0);
+        self.views.resize(n, 0);
+    }
+
+    pub fn reset(&mut self, n: usize) {
+        self.sum.clear();
+        self.views.clear();
+        self.resize(n);
+    }
+}
+
 /// Which Gaussians to keep. `max_radii`: per Gaussian, the largest screen extent seen since
-/// the last pruning (pixels), when tracked.
+/// the last pruning (pixels), when tracked; `seen`: their contributions since then, when
+/// tracked.
 pub fn keep_mask(
     map: &GaussianMap,
     extent: Real,
     max_radii: Option<&[Real]>,
+    seen: Option<&Contributions>,
     cfg: &PruneConfig,
 ) -> Vec<bool> {
     (0..map.len())
@@ -42,7 +92,13 @@ pub fn keep_mask(
             let small = largest <= cfg.max_world_scale * extent;
             let on_screen_ok = cfg.max_screen_radius <= 0.0
                 || max_radii.is_none_or(|r| r[i] <= cfg.max_screen_radius);
-            opaque && small && on_screen_ok
+            let contributes = cfg.min_contribution <= 0.0
+                || seen.is_none_or(|c| {
+                    let views = c.views.get(i).copied().unwrap_or(0);
+                    views < cfg.contribution_views.max(1) as u32
+                        || c.sum[i] >= cfg.min_contribution * views as Real
+                });
+            opaque && small && on_screen_ok && contributes
         })
         .collect()
 }

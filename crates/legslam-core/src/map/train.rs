@@ -7,7 +7,7 @@ use std::time::Instant;
 use super::densify::{densify, DensifyConfig, GradStats};
 use super::grow::{assign_features, grow, GrowConfig, RenderedView};
 use super::pose::step_pose;
-use super::prune::{keep_mask, PruneConfig};
+use super::prune::{keep_mask, Contributions, PruneConfig};
 use super::{FeatureGrid, GaussianMap, Keyframe};
 use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
@@ -147,6 +147,7 @@ pub struct Mapper {
     queue_window: usize,
     rng: Rng,
     stats: GradStats,
+    seen: Contributions,
     iteration: usize,
     scratch: Scratch,
 }
@@ -185,6 +186,7 @@ impl Mapper {
             queue_window: 0,
             rng: Rng::new(config.seed),
             stats: GradStats::default(),
+            seen: Contributions::default(),
             iteration: 0,
             scratch: Scratch::default(),
             config,
@@ -463,6 +465,13 @@ impl Mapper {
         report.backward_s += t.elapsed().as_secs_f64();
         // Densification statistics from the main layer's screen-space gradients.
         self.stats.add(&sc.grads.means2d, &sc.grads.rows, w, h);
+        // Contributions at the finest level trained only: a Gaussian smaller than a coarser
+        // level's pixels can fall between their centres there and seem to make nothing.
+        if li == c.finest_level.min(coarsest) {
+            let area = (1usize << (2 * li)) as Real;
+            self.seen
+                .add(&sc.grads.contribution, &r.radii, &sc.grads.rows, area);
+        }
         self.scratch.rendered = r;
         report.last = terms;
 
@@ -512,7 +521,14 @@ impl Mapper {
             &mut self.rng,
         );
         self.adam.append(d.sources.len());
-        let prune = keep_mask(&self.map, extent, None, &self.config.prune);
+        self.seen.resize(d.keep.len());
+        let prune = keep_mask(
+            &self.map,
+            extent,
+            None,
+            Some(&self.seen),
+            &self.config.prune,
+        );
         let keep: Vec<bool> = d.keep.iter().zip(&prune).map(|(a, b)| *a && *b).collect();
         let before = self.map.len();
         self.map.retain(&keep);
@@ -521,6 +537,7 @@ impl Mapper {
         report.split += d.split;
         report.pruned += before - self.map.len() - d.split;
         self.stats.reset(self.map.len());
+        self.seen.reset(self.map.len());
         Ok(())
     }
 }
@@ -558,6 +575,8 @@ crate::options!(MapperConfig, "mapper", {
     "depth_max" => grow.depth_max,
     "prune_min_opacity" => prune.min_opacity,
     "prune_max_world_scale" => prune.max_world_scale,
+    "prune_min_contribution" => prune.min_contribution,
+    "prune_contribution_views" => prune.contribution_views,
     "densify_interval" => densify.interval,
     "densify_grad_threshold" => densify.grad_threshold,
     "densify_split_scale" => densify.split_scale,

@@ -30,7 +30,9 @@ mod slot {
     /// Red, green, blue.
     pub const COLOR: usize = 6;
     pub const DEPTH: usize = 9;
-    pub const COUNT: usize = 10;
+    /// Sum of blending weights alpha * T (not a gradient: how much of the image it makes).
+    pub const WEIGHT: usize = 10;
+    pub const COUNT: usize = 11;
 }
 const SLOTS: usize = slot::COUNT;
 
@@ -149,7 +151,7 @@ pub fn backward_into(
     let n = g.len();
     let nc = g.sh_coeffs * 3;
     let kf = g.num_features;
-    let widths = [3, 3, 4, 1, nc, kf, 2];
+    let widths = [3, 3, 4, 1, nc, kf, 2, 1];
     let mut stale = std::mem::take(&mut out.rows);
     if out
         .arrays_mut()
@@ -179,16 +181,17 @@ pub fn backward_into(
         .zip(split_chunks(&mut out.sh, CHUNK * nc, nch))
         .zip(split_chunks(&mut out.features, CHUNK * kf, nch))
         .zip(split_chunks(&mut out.means2d, CHUNK * 2, nch))
+        .zip(split_chunks(&mut out.contribution, CHUNK, nch))
         .enumerate()
         .collect();
     let pin = Pinhole::new(cam, cfg);
     let pose_parts: Vec<[Real; 6]> = chunks
         .into_par_iter()
-        .map(|(c, ((((((gm, gs), gq), go), gsh), gfeat), gm2))| {
+        .map(|(c, (((((((gm, gs), gq), go), gsh), gfeat), gm2), gw))| {
             let first = c * CHUNK;
             for &i in rows_in(&stale, first, CHUNK) {
                 let li = i as usize - first;
-                let parts: [(&mut [Real], usize); 7] = [
+                let parts: [(&mut [Real], usize); 8] = [
                     (gm, 3),
                     (gs, 3),
                     (gq, 4),
@@ -196,6 +199,7 @@ pub fn backward_into(
                     (gsh, nc),
                     (gfeat, kf),
                     (gm2, 2),
+                    (gw, 1),
                 ];
                 for (v, w) in parts {
                     v[li * w..(li + 1) * w].fill(0.0);
@@ -206,6 +210,7 @@ pub fn backward_into(
                 let (i, li) = (i as usize, i as usize - first);
                 // Each layer's pairs, in tile order, so that the sums are deterministic.
                 let mut sums = [ScreenGrads::default(); 2];
+                let mut weight = 0.0;
                 for (l, sg) in sums.iter_mut().enumerate().take(1 + usize::from(coarse)) {
                     let ls = layer_scratch[l];
                     let stride = strides[l];
@@ -217,6 +222,9 @@ pub fn backward_into(
                         sg.opacity += s[slot::OPACITY];
                         sg.color += v3(slot::COLOR);
                         sg.depth += s[slot::DEPTH];
+                        if l == 0 {
+                            weight += s[slot::WEIGHT];
+                        }
                         for (o, v) in gfeat[li * kf..][..kf].iter_mut().zip(&s[SLOTS..]) {
                             *o += v;
                         }
@@ -226,6 +234,7 @@ pub fn backward_into(
                 // Densification reads the main layer's screen-space gradient alone.
                 gm2[2 * li] = sg.xy.x;
                 gm2[2 * li + 1] = sg.xy.y;
+                gw[li] = weight;
                 if coarse {
                     // The coarse splat's centre is (xy + 0.5) / s - 0.5 and its covariance
                     // (cov2d - dilation) / s^2 + dilation.
@@ -475,6 +484,7 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
                 acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
             }
             acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
+            acc[slot::WEIGHT] = acc[slot::WEIGHT].add(wgt);
             let prefix = L::load(&tg.prefix[lp..]);
             let prefix_next = prefix.add(wgt.mul(x_j));
             let next = t.mul(one.sub(cv.alpha));

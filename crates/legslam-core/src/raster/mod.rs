@@ -235,13 +235,16 @@ pub struct Gradients {
     pub means2d: Vec<Real>,
     /// With respect to the left twist (rho, phi) of the world-to-camera pose.
     pub pose: [Real; 6],
+    /// [N] not a gradient: each Gaussian's blending weights alpha * T summed over the main
+    /// layer's pixels, how much of the image it makes (pruning removes what makes nothing).
+    pub contribution: Vec<Real>,
     /// The Gaussians on screen, in order: every other Gaussian's rows are zero in every group.
     pub rows: Vec<u32>,
 }
 
 impl Gradients {
-    /// Every per-Gaussian array: the parameter groups, then `means2d`.
-    pub fn arrays_mut(&mut self) -> [&mut Vec<Real>; 7] {
+    /// Every per-Gaussian array: the parameter groups, then `means2d` and `contribution`.
+    pub fn arrays_mut(&mut self) -> [&mut Vec<Real>; 8] {
         [
             &mut self.means,
             &mut self.log_scales,
@@ -250,6 +253,7 @@ impl Gradients {
             &mut self.sh,
             &mut self.features,
             &mut self.means2d,
+            &mut self.contribution,
         ]
     }
 }

@@ -170,6 +170,8 @@ pub struct RefImages {
     pub depth: Vec<f64>,
     pub alpha: Vec<f64>,
     pub features: Vec<f64>,
+    /// Per Gaussian: its blending weights alpha * T summed over the image.
+    pub weights: Vec<f64>,
 }
 
 /// Plain per-pixel reference in f64: every Gaussian against every pixel in global depth order,
@@ -257,6 +259,7 @@ pub fn reference_render(s: &Scene, sh_degree: usize, cfg: &RasterConfig) -> RefI
         depth: vec![0.0; w * h],
         alpha: vec![0.0; w * h],
         features: vec![0.0; w * h * kk],
+        weights: vec![0.0; s.len()],
     };
     for y in 0..h {
         for x in 0..w {
@@ -275,6 +278,7 @@ pub fn reference_render(s: &Scene, sh_degree: usize, cfg: &RasterConfig) -> RefI
                     break;
                 }
                 let wgt = a * tr;
+                out.weights[g.idx] += wgt;
                 for ch in 0..3 {
                     out.color[3 * p + ch] += wgt * g.c[ch];
                 }
