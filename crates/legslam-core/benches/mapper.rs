@@ -4,13 +4,12 @@
 //! as in a SLAM run), the SLAM's mapper options at 640x480 (training at 320x240, SH degree 3,
 //! K = 64 features on a smooth synthetic patch grid). Then single iterations (render + loss +
 //! backward + step) are timed, per phase, on 2 threads, with the portable compositing and the
-//! AVX2 one alternately, and on a second map grown the same way without pruning by
-//! contribution.
+//! AVX2 one alternately, and on a second map grown the same way with pruning by contribution.
 //!
 //! cargo bench -p legslam-core --bench mapper
 //! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
 //! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20),
-//! LEGSLAM_BENCH_UNPRUNED (0 skips the second map).
+//! LEGSLAM_BENCH_PRUNED (0 skips the second map).
 
 #[path = "common/mod.rs"]
 mod common;
@@ -124,18 +123,18 @@ fn main() {
         mapper
     };
     // The map with the portable and the AVX2 compositing (the same bits, so alternating them
-    // trains the map as either would), and one grown without pruning by contribution
-    // (LEGSLAM_BENCH_UNPRUNED=0 skips it), on AVX2 where the CPU has it.
+    // trains the map as either would), and one grown with pruning by contribution at 0.5 pixel
+    // (LEGSLAM_BENCH_PRUNED=0 skips it), on AVX2 where the CPU has it.
     let mut mappers = vec![grow(config.clone())];
     let mut variants: Vec<(&str, usize, bool)> = vec![("portable", 0, false)];
     if avx2_available() {
         variants.push(("avx2", 0, true));
     }
-    if env("LEGSLAM_BENCH_UNPRUNED", 1) != 0 {
-        let mut unpruned = config.clone();
-        unpruned.prune.min_contribution = 0.0;
-        mappers.push(grow(unpruned));
-        variants.push(("unpruned", 1, avx2_available()));
+    if env("LEGSLAM_BENCH_PRUNED", 1) != 0 {
+        let mut pruned = config.clone();
+        pruned.prune.min_contribution = 0.5;
+        mappers.push(grow(pruned));
+        variants.push(("pruned", 1, avx2_available()));
     }
     let mut phases = vec![[(); 6].map(|_| Vec::new()); variants.len()];
     pool.install(|| {
