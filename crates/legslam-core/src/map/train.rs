@@ -521,7 +521,7 @@ impl Mapper {
             &mut self.rng,
         );
         self.adam.append(d.sources.len());
-        self.seen.resize(d.keep.len());
+        // Rows densification just appended have no views yet: `keep_mask` reads them as unseen.
         let prune = keep_mask(
             &self.map,
             extent,
