@@ -1,9 +1,10 @@
 //! Map growth, pruning and densification on small hand-built cases.
 
 use legslam_core::camera::{se3, Intrinsics, Pose};
-use legslam_core::map::densify::{densify, DensifyConfig, GradStats};
+use legslam_core::map::densify::{add_screen_grads, densify, DensifyConfig};
 use legslam_core::map::grow::{assign_features, grow, GrowConfig, RenderedView};
-use legslam_core::map::prune::{keep_mask, PruneConfig};
+use legslam_core::map::prune::{add_contributions, keep_mask, PruneConfig};
+use legslam_core::map::tally::Tally;
 use legslam_core::map::{FeatureGrid, GaussianMap, Keyframe, NewGaussian};
 use legslam_core::rng::Rng;
 use legslam_core::Real;
@@ -163,12 +164,46 @@ fn pruning_removes_transparent_and_huge_gaussians() {
 }
 
 #[test]
+fn pruning_by_contribution_needs_enough_views_and_spares_rows_not_tallied() {
+    let mut map = GaussianMap::new(1, 0);
+    for _ in 0..4 {
+        one(&mut map, -3.0, 0.0);
+    }
+    // Three views of a half-resolution render (a pixel covers 4 full-resolution pixels):
+    // Gaussian 0 makes 0.1 of a pixel in each, Gaussian 1 as little but is off screen in one
+    // view, Gaussian 2 makes 1 pixel in each; Gaussian 3 came after the tally started.
+    let mut seen = Tally::default();
+    for view in 0..3 {
+        let radius_1 = if view == 0 { 0.0 } else { 2.0 };
+        add_contributions(
+            &mut seen,
+            &[0.025, 0.025, 0.25],
+            &[2.0, radius_1, 2.0],
+            &[0, 1, 2],
+            4.0,
+        );
+    }
+    assert_eq!(seen.count, vec![3, 2, 3]);
+    assert_eq!(seen.count(3), 0);
+    assert!((seen.mean(0).unwrap() - 0.1).abs() < 1e-6 && seen.mean(3).is_none());
+    let cfg = PruneConfig {
+        min_contribution: 0.5,
+        contribution_views: 3,
+        ..Default::default()
+    };
+    let keep = keep_mask(&map, 2.0, None, Some(&seen), &cfg);
+    assert_eq!(keep, vec![false, true, true, true]);
+    let off = PruneConfig::default(); // min_contribution 0: nothing pruned by contribution
+    assert_eq!(keep_mask(&map, 2.0, None, Some(&seen), &off), vec![true; 4]);
+}
+
+#[test]
 fn densification_clones_small_and_splits_large() {
     let mut map = GaussianMap::new(1, 0);
     one(&mut map, -6.0, 1.0); // small: cloned
     one(&mut map, -2.0, 1.0); // large (0.135 > 0.01 x 2): split
     one(&mut map, -6.0, 1.0); // small gradient: untouched
-    let stats = GradStats {
+    let stats = Tally {
         sum: vec![1.0, 1.0, 1e-6],
         count: vec![2, 2, 2],
     };
@@ -193,7 +228,7 @@ fn densification_respects_the_cap() {
     for _ in 0..4 {
         one(&mut map, -6.0, 1.0);
     }
-    let stats = GradStats {
+    let stats = Tally {
         sum: vec![1.0; 4],
         count: vec![1; 4],
     };
@@ -208,9 +243,15 @@ fn densification_respects_the_cap() {
 #[test]
 fn gradient_statistics_are_in_normalised_device_coordinates() {
     // Two visible Gaussians and one culled; pixel gradients of a 320 x 240 render.
-    let mut stats = GradStats::default();
-    stats.add(&[1e-3, 0.0, 0.0, 2e-3, 5.0, 5.0], &[0, 1], 320, 240);
-    stats.add(&[3e-3, 0.0, 0.0, 0.0, 5.0, 5.0], &[0], 320, 240);
+    let mut stats = Tally::default();
+    add_screen_grads(
+        &mut stats,
+        &[1e-3, 0.0, 0.0, 2e-3, 5.0, 5.0],
+        &[0, 1],
+        320,
+        240,
+    );
+    add_screen_grads(&mut stats, &[3e-3, 0.0, 0.0, 0.0, 5.0, 5.0], &[0], 320, 240);
     assert_eq!(stats.count, vec![2, 1, 0]);
     // x scales by width / 2, y by height / 2: (0.16 + 0.48) and 0.24.
     assert!((stats.sum[0] - 0.64).abs() < 1e-6, "{:?}", stats.sum);

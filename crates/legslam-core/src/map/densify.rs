@@ -2,6 +2,7 @@
 //! gradients are under-reconstructing; small ones are cloned, large ones split in two.
 
 use super::store::GaussianMap;
+use super::tally::Tally;
 use crate::raster::math::{quat_to_mat, V3};
 use crate::rng::Rng;
 use crate::Real;
@@ -33,37 +34,22 @@ impl Default for DensifyConfig {
     }
 }
 
-/// Per-Gaussian accumulated gradient norms between densifications.
-#[derive(Clone, Debug, Default)]
-pub struct GradStats {
-    pub sum: Vec<Real>,
-    pub count: Vec<u32>,
-}
-
-impl GradStats {
-    /// Adds one iteration's d(loss)/d(means2d) (pixels) of a `width` x `height` render for
-    /// the Gaussians that were on screen (`visible`), converted to normalised device
-    /// coordinates.
-    pub fn add(&mut self, means2d: &[Real], visible: &[u32], width: usize, height: usize) {
-        self.resize(means2d.len() / 2);
-        let (sx, sy) = (0.5 * width as Real, 0.5 * height as Real);
-        for &i in visible {
-            let i = i as usize;
-            let (gx, gy) = (means2d[2 * i] * sx, means2d[2 * i + 1] * sy);
-            self.sum[i] += (gx * gx + gy * gy).sqrt();
-            self.count[i] += 1;
-        }
-    }
-
-    pub fn resize(&mut self, n: usize) {
-        self.sum.resize(n, 0.0);
-        self.count.resize(n, 0);
-    }
-
-    pub fn reset(&mut self, n: usize) {
-        self.sum.clear();
-        self.count.clear();
-        self.resize(n);
+/// Adds one iteration's d(loss)/d(means2d) (pixels) of a `width` x `height` render for the
+/// Gaussians that were on screen (`visible`) to their gradient norms, converted to normalised
+/// device coordinates.
+pub fn add_screen_grads(
+    stats: &mut Tally,
+    means2d: &[Real],
+    visible: &[u32],
+    width: usize,
+    height: usize,
+) {
+    stats.resize(means2d.len() / 2);
+    let (sx, sy) = (0.5 * width as Real, 0.5 * height as Real);
+    for &i in visible {
+        let i = i as usize;
+        let (gx, gy) = (means2d[2 * i] * sx, means2d[2 * i + 1] * sy);
+        stats.add(i, (gx * gx + gy * gy).sqrt());
     }
 }
 
@@ -77,10 +63,11 @@ pub struct Densified {
 }
 
 /// Clones and splits in place (appending rows) and returns what was done, so that optimiser
-/// state can follow: the appended rows are copies of `sources`; then `keep` applies.
+/// state can follow: the appended rows are copies of `sources`; then `keep` applies. `stats`:
+/// the gradient norms since the last densification (`add_screen_grads`).
 pub fn densify(
     map: &mut GaussianMap,
-    stats: &GradStats,
+    stats: &Tally,
     extent: Real,
     cfg: &DensifyConfig,
     rng: &mut Rng,
@@ -90,8 +77,8 @@ pub fn densify(
     let mut clone_rows = Vec::new();
     let mut split_rows = Vec::new();
     let budget = cfg.max_gaussians.saturating_sub(n);
-    for i in 0..n.min(stats.count.len()) {
-        if stats.count[i] == 0 || stats.sum[i] / (stats.count[i] as Real) < cfg.grad_threshold {
+    for i in 0..n {
+        if stats.mean(i).is_none_or(|g| g < cfg.grad_threshold) {
             continue;
         }
         let s = &map.log_scales[3 * i..3 * i + 3];

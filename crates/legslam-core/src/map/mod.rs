@@ -10,6 +10,7 @@ pub mod keyframe;
 pub mod pose;
 pub mod prune;
 pub mod store;
+pub mod tally;
 pub mod train;
 
 pub use features::FeatureGrid;

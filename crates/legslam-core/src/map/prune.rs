@@ -3,6 +3,7 @@
 //! removed.
 
 use super::store::GaussianMap;
+use super::tally::Tally;
 use crate::raster::math::sigmoid;
 use crate::Real;
 
@@ -39,50 +40,33 @@ impl Default for PruneConfig {
     }
 }
 
-/// Per Gaussian since the last pruning: the training views it was on screen in, and its
-/// contribution (blending weights summed over a view's pixels, in full-resolution pixels)
-/// summed over them.
-#[derive(Clone, Debug, Default)]
-pub struct Contributions {
-    pub sum: Vec<Real>,
-    pub views: Vec<u32>,
-}
-
-impl Contributions {
-    /// Adds one view: `contribution` per Gaussian in the render's pixels, each of which
-    /// covers `pixel_area` full-resolution pixels; `radii` > 0 marks the Gaussians on screen
-    /// (`rows`, sorted, holds every one of them).
-    pub fn add(&mut self, contribution: &[Real], radii: &[Real], rows: &[u32], pixel_area: Real) {
-        self.resize(radii.len());
-        for &i in rows {
-            let i = i as usize;
-            if radii[i] > 0.0 {
-                self.sum[i] += contribution[i] * pixel_area;
-                self.views[i] += 1;
-            }
+/// Adds one training view to each on-screen Gaussian's contributions: `contribution` per
+/// Gaussian in the render's pixels, each of which covers `pixel_area` full-resolution pixels;
+/// `radii` > 0 marks the Gaussians on screen (`rows`, sorted, holds every one of them).
+pub fn add_contributions(
+    seen: &mut Tally,
+    contribution: &[Real],
+    radii: &[Real],
+    rows: &[u32],
+    pixel_area: Real,
+) {
+    seen.resize(radii.len());
+    for &i in rows {
+        let i = i as usize;
+        if radii[i] > 0.0 {
+            seen.add(i, contribution[i] * pixel_area);
         }
-    }
-
-    pub fn resize(&mut self, n: usize) {
-        self.sum.resize(n, 0.0);
-        self.views.resize(n, 0);
-    }
-
-    pub fn reset(&mut self, n: usize) {
-        self.sum.clear();
-        self.views.clear();
-        self.resize(n);
     }
 }
 
 /// Which Gaussians to keep. `max_radii`: per Gaussian, the largest screen extent seen since
-/// the last pruning (pixels), when tracked; `seen`: their contributions since then, when
-/// tracked.
+/// the last pruning (pixels), when tracked; `seen`: their contributions to the training views
+/// they were on screen in since then (`add_contributions`), when tracked.
 pub fn keep_mask(
     map: &GaussianMap,
     extent: Real,
     max_radii: Option<&[Real]>,
-    seen: Option<&Contributions>,
+    seen: Option<&Tally>,
     cfg: &PruneConfig,
 ) -> Vec<bool> {
     (0..map.len())
@@ -95,7 +79,7 @@ pub fn keep_mask(
                 || max_radii.is_none_or(|r| r[i] <= cfg.max_screen_radius);
             let contributes = cfg.min_contribution <= 0.0
                 || seen.is_none_or(|c| {
-                    let views = c.views.get(i).copied().unwrap_or(0);
+                    let views = c.count(i);
                     views < cfg.contribution_views.max(1) as u32
                         || c.sum[i] >= cfg.min_contribution * views as Real
                 });

@@ -4,10 +4,11 @@
 
 use std::time::Instant;
 
-use super::densify::{densify, DensifyConfig, GradStats};
+use super::densify::{add_screen_grads, densify, DensifyConfig};
 use super::grow::{assign_features, grow, GrowConfig, RenderedView};
 use super::pose::step_pose;
-use super::prune::{keep_mask, Contributions, PruneConfig};
+use super::prune::{add_contributions, keep_mask, PruneConfig};
+use super::tally::Tally;
 use super::{FeatureGrid, GaussianMap, Keyframe};
 use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
@@ -146,8 +147,10 @@ pub struct Mapper {
     /// The window the queue was drawn from.
     queue_window: usize,
     rng: Rng,
-    stats: GradStats,
-    seen: Contributions,
+    /// Since the last refinement: screen-space gradient norms (densification) and
+    /// contributions to the views (pruning), per Gaussian.
+    stats: Tally,
+    seen: Tally,
     iteration: usize,
     scratch: Scratch,
 }
@@ -185,8 +188,8 @@ impl Mapper {
             queue: Vec::new(),
             queue_window: 0,
             rng: Rng::new(config.seed),
-            stats: GradStats::default(),
-            seen: Contributions::default(),
+            stats: Tally::default(),
+            seen: Tally::default(),
             iteration: 0,
             scratch: Scratch::default(),
             config,
@@ -464,13 +467,18 @@ impl Mapper {
         )?;
         report.backward_s += t.elapsed().as_secs_f64();
         // Densification statistics from the main layer's screen-space gradients.
-        self.stats.add(&sc.grads.means2d, &sc.grads.rows, w, h);
+        add_screen_grads(&mut self.stats, &sc.grads.means2d, &sc.grads.rows, w, h);
         // Contributions at the finest level trained only: a Gaussian smaller than a coarser
         // level's pixels can fall between their centres there and seem to make nothing.
         if li == c.finest_level.min(coarsest) {
             let area = (1usize << (2 * li)) as Real;
-            self.seen
-                .add(&sc.grads.contribution, &r.radii, &sc.grads.rows, area);
+            add_contributions(
+                &mut self.seen,
+                &sc.grads.contribution,
+                &r.radii,
+                &sc.grads.rows,
+                area,
+            );
         }
         self.scratch.rendered = r;
         report.last = terms;
