@@ -94,7 +94,7 @@ def main() -> int:
     loop_ms = [e["ms"] for e in loops]
     print(f"| loops closed / rejected, ms per closure (median) | {len(loops)} / "
           f"{len(m.get('rejected_loops', []))}, {np.median(loop_ms) if loop_ms else 0:.0f} ms |")
-    print(f"| places kept (keyframes' tokens, points, views) | {m.get('place_memory_mb', 0):.1f} MB |")
+    print(f"| places kept (keyframes' descriptors, keypoints, views) | {m.get('place_memory_mb', 0):.1f} MB |")
     for name, label in (("every_5", "every 5th frame"), ("at_keyframes", "keyframes")):
         v = m[name]
         print(f"| map at {label} ({v['count']} views): PSNR / SSIM / depth L1 | "

@@ -1,4 +1,4 @@
-"""The trajectory beyond tracking: place recognition (RANSAC + Umeyama on patch matches,
+"""The trajectory beyond tracking: place recognition (RANSAC + Umeyama on keypoint matches,
 retrieval by descriptor), relocalisation of a kidnapped camera, loop closure on a drifted loop
 and the refusal of a false one, on the built-in scene. Tests that need the DINOv2 encoder skip
 when it is not cached (`legslam models fetch`)."""
@@ -10,8 +10,9 @@ from legslam.datasets import open as open_dataset, synthetic
 from legslam.eval import ate
 from legslam.slam import SLAM, SLAMConfig
 from legslam.slam.keyframes import rotation_deg
-from legslam.slam.place_recognition import (Place, PlaceIndex, global_descriptor, mutual_matches,
-                                            ransac_rigid)
+from legslam.eval.trajectory import umeyama
+from legslam.slam.place_recognition import (Place, PlaceIndex, global_descriptor, keypoints,
+                                            overlap, ransac_rigid, ratio_matches, rigid_fits)
 from legslam.slam.trajectory import View
 from legslam.tracking import Tracker
 
@@ -97,12 +98,61 @@ def test_ransac_umeyama_recovers_a_known_transform_from_matches_with_outliers():
     assert ransac_rigid(src[:2], dst[:2], 0.02)[0] is None
 
 
-def test_mutual_matches_keep_only_pairs_that_choose_each_other():
-    a = np.eye(4)[:3]
-    b = np.array([[0.9, 0.1, 0, 0], [0.8, 0, 0.2, 0], [0, 0, 0, 1.0]])
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    # a0 and b0 choose each other; b1 prefers a0 too (not mutual); a2 and b2 are orthogonal.
-    assert mutual_matches(a, b, 0.5).tolist() == [[0, 0]]
+def test_rigid_fits_are_umeyamas_fit_of_each_set():
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(50, 4, 3))
+    # Half the sets moved rigidly, half moved by a reflection (its best rotation is no mirror).
+    dst = src @ rotation([1, 2, 3], 70).T + [0.3, -0.2, 1.0]
+    dst[25:, :, 0] *= -1
+    dst += 0.01 * rng.normal(size=dst.shape)
+    R, t = rigid_fits(src, dst)
+    for k in range(len(src)):
+        R_ref, t_ref, _ = umeyama(src[k], dst[k])
+        assert np.allclose(R[k], R_ref, atol=1e-9) and np.allclose(t[k], t_ref, atol=1e-9)
+    assert np.allclose(np.linalg.det(R), 1.0)
+
+
+def test_ratio_matches_keep_only_clearly_nearest_descriptors():
+    rng = np.random.default_rng(2)
+    b = rng.integers(0, 256, size=(50, 32), dtype=np.uint8)
+    b[7] = b[3]
+    b[7, 0] ^= np.uint8(1)  # b3 and b7 one bit apart: a row near both is ambiguous
+    a = b[[10, 20, 3]].copy()
+    a[0, :4] ^= np.uint8(0xFF)  # 32 of 256 bits flipped: still far nearer b10 than any other
+    a[2, 1] ^= np.uint8(0xFF)  # 8 bits from b3, 9 from b7: not clearly either
+    assert ratio_matches(a, b, 0.8).tolist() == [[0, 10], [1, 20]]
+    assert ratio_matches(a[:0], b, 0.8).shape == (0, 2)
+    assert ratio_matches(a, b[:1], 0.8).shape == (0, 2)  # no second nearest to compare with
+
+
+def test_keypoints_are_lifted_with_the_depth_under_them(scene):
+    f = scene[12]
+    rgb, depth, K = f.rgb, f.depth.copy(), f.K
+    depth[:, : W // 2] = 0  # no depth on the left half: no keypoints there
+    points, features = keypoints(rgb, depth, K)
+    assert len(points) >= 50 and features.shape == (len(points), 32) and features.dtype == np.uint8
+    u = points[:, 0] / points[:, 2] * K[0, 0] + K[0, 2]
+    v = points[:, 1] / points[:, 2] * K[1, 1] + K[1, 2]
+    assert (u >= W // 2 - 0.5).all()
+    z = depth[np.rint(v).astype(int), np.rint(u).astype(int)]
+    assert np.allclose(points[:, 2], z)
+
+
+def test_overlap_is_the_share_of_pixels_both_views_see():
+    # A wall 2 m ahead; the other camera 1 m to the side sees the half of it nearer to it.
+    K = np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]])
+    wall = np.full((H, W), 2.0, np.float32)
+    side = np.eye(4)
+    side[0, 3] = 2.0 * (W / 2) / K[0, 0]  # half the image width at the wall's depth
+    assert overlap(wall, K, np.eye(4), View(np.eye(4), None, wall)) == 1.0
+    assert abs(overlap(wall, K, np.eye(4), View(side, None, wall)) - 0.5) < 0.02
+    holed = wall.copy()
+    holed[:, : W // 2] = 0  # the other view has no depth where it would see the wall
+    assert overlap(wall, K, np.eye(4), View(side, None, holed)) < 0.02
+    behind = np.eye(4)
+    behind[:3, :3] = rotation([0, 1, 0], 180)  # looking away: nothing in front of it
+    assert overlap(wall, K, np.eye(4), View(behind, None, wall)) == 0.0
+    assert overlap(np.zeros_like(wall), K, np.eye(4), View(np.eye(4), None, wall)) == 0.0
 
 
 def test_retrieval_ranks_the_revisited_keyframe_first(encoder, room):
@@ -127,6 +177,18 @@ def test_retrieval_ranks_the_revisited_keyframe_first(encoder, room):
         assert found is not None
         assert np.linalg.norm(found.pose[:3, 3] - revisit[:3, 3]) < 0.03
         assert rotation_deg(found.pose, revisit) < 1.5
+        # Turned 30 degrees away: the keyframe sees about half of the view. Its inliers are
+        # counted among the pixels both see (half of all: an alignment this right was refused
+        # when they were counted among all).
+        turned = path[k].copy()
+        turned[:3, :3] = rotation([0, 0, 1], 30) @ turned[:3, :3]
+        turned[:3, 3] += [0.1, -0.1, 0.0]
+        rgb, depth = view(turned)
+        found = index.verify(Place.of(-1, encoder.encode(rgb), View(None, rgb, depth), K),
+                             index.places[k])
+        assert found is not None and found.overlap < 0.6 and found.overlap * found.inlier_ratio < 0.5
+        assert np.linalg.norm(found.pose[:3, 3] - turned[:3, 3]) < 0.01
+        assert rotation_deg(found.pose, turned) < 0.5
     # A view of another part of the room does not verify against keyframe 2's place.
     rgb, depth = view(path[6])
     other = Place.of(-1, encoder.encode(rgb), View(None, rgb, depth), K)
@@ -269,7 +331,7 @@ def test_a_false_loop_is_rejected_and_logged(room, caplog):
     before = np.stack(loops.poses)
     # Keyframe 9 "recognised" at keyframe 0's place, as twin rooms would make it.
     false = Recognised(pose=loops.poses[0], keyframe=0, similarity=0.95, inliers=40, matches=60,
-                       inlier_ratio=0.8)
+                       inlier_ratio=0.8, overlap=0.9)
     with caplog.at_level("WARNING", logger="legslam"):
         assert loops.close(9, false, ms=0.0) is None
     assert "rejected" in caplog.text

@@ -193,7 +193,7 @@ class SLAMConfig:
     pca_keyframes: int = 3
     #: A PCA fitted beforehand (.npz from legslam.features.PCA.save) instead of fitting one.
     pca_path: Optional[str] = None
-    #: Place recognition from keyframes' patch tokens (legslam.slam.place_recognition):
+    #: Place recognition (legslam.slam.place_recognition; retrieval by patch tokens):
     #: `relocalise` places a lost frame in the map again, `loop_closure` closes loops over a
     #: keyframe pose graph. Either runs the encoder on keyframes, even with `features` off.
     relocalise: bool = True
@@ -202,13 +202,17 @@ class SLAMConfig:
     #: patch tokens).
     place_candidates: int = 3
     place_min_similarity: float = 0.7
-    #: Coarse alignment: mutually nearest patch tokens at least this alike, lifted with
-    #: depth; RANSAC inliers within this distance (m), and at least this many of them.
-    place_min_token_similarity: float = 0.5
+    #: Coarse alignment: ORB keypoints matched when the nearest is nearer than this times the
+    #: second nearest, lifted with depth; RANSAC inliers within this distance (m), and at least
+    #: this many of them.
+    place_match_ratio: float = 0.8
     place_ransac_threshold: float = 0.05
     place_min_inliers: int = 10
-    #: Dense verification: the tracker's inlier ratio against the keyframe, at least this.
-    place_min_inlier_ratio: float = 0.5
+    #: Dense verification against the keyframe's view: the views overlap on at least this
+    #: share of the frame's pixels, and at least this share of the pixels both see are the
+    #: tracker's inliers.
+    place_min_overlap: float = 0.25
+    place_min_inlier_ratio: float = 0.65
     #: Loop candidates are at least this many keyframes older than the new keyframe.
     loop_min_gap: int = 15
     #: Odometry edges between keyframes: standard deviation per metre moved (at least 10 cm
@@ -332,8 +336,9 @@ _RANGES = {
     "feature_dim": (1, 4096),
     "pca_keyframes": (1, _INF),
     "place_candidates": (1, _INF), "place_min_similarity": (0.0, 1.0),
-    "place_min_token_similarity": (0.0, 1.0), "place_ransac_threshold": (1e-6, _INF),
-    "place_min_inliers": (3, _INF), "place_min_inlier_ratio": (0.0, 1.0), "loop_min_gap": (1, _INF),
+    "place_match_ratio": (1e-6, 1.0), "place_ransac_threshold": (1e-6, _INF),
+    "place_min_inliers": (3, _INF), "place_min_inlier_ratio": (0.0, 1.0),
+    "place_min_overlap": (0.0, 1.0), "loop_min_gap": (1, _INF),
     "odometry_sigma_translation": (1e-6, _INF), "odometry_sigma_rotation": (1e-6, _INF),
     "loop_sigma_translation": (1e-6, _INF), "loop_sigma_rotation": (1e-6, _INF),
 }

@@ -35,7 +35,7 @@ class Relocalisation:
 
     def as_dict(self) -> dict:
         return {"frame": self.frame, "keyframe": self.keyframe, "lost_frames": self.lost,
-                "similarity": round(self.similarity, 4), "patch_inliers": self.inliers,
+                "similarity": round(self.similarity, 4), "keypoint_inliers": self.inliers,
                 "inlier_ratio": round(self.inlier_ratio, 4), "ms": round(self.ms, 1)}
 
 
@@ -65,7 +65,7 @@ class Relocaliser:
         self.events.append(event)
         self._lost_since = None
         log.info("frame %d relocalised against keyframe %d after %d lost frames (similarity %.3f, "
-                 "%d patch inliers, inlier ratio %.2f)", frame, found.keyframe, event.lost,
+                 "%d keypoint inliers, inlier ratio %.2f)", frame, found.keyframe, event.lost,
                  found.similarity, found.inliers, found.inlier_ratio)
         return found
 
