@@ -123,8 +123,8 @@ fn main() {
         mapper
     };
     // The map with the portable and the AVX2 compositing (the same bits, so alternating them
-    // trains the map as either would), and one grown with pruning by contribution at 0.5 pixel
-    // (LEGSLAM_BENCH_PRUNED=0 skips it), on AVX2 where the CPU has it.
+    // trains the map as either would), and one grown with pruning by contribution at 1.6 per
+    // million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0 skips it), on AVX2 where the CPU has it.
     let mut mappers = vec![grow(config.clone())];
     let mut variants: Vec<(&str, usize, bool)> = vec![("portable", 0, false)];
     if avx2_available() {
@@ -132,7 +132,7 @@ fn main() {
     }
     if env("LEGSLAM_BENCH_PRUNED", 1) != 0 {
         let mut pruned = config.clone();
-        pruned.prune.min_contribution = 0.5;
+        pruned.prune.min_contribution = 1.6;
         mappers.push(grow(pruned));
         variants.push(("pruned", 1, avx2_available()));
     }

@@ -298,7 +298,8 @@ fn gaussians_hidden_behind_a_nearer_surface_are_pruned_by_contribution() {
     };
     let (hidden, near, kept_off, loss_off) = run(0.0);
     assert!(hidden > 100 && near > 100, "{hidden} far, {near} near");
-    let (_, _, kept_on, loss_on) = run(0.25);
+    // A quarter of one of the view's 64 x 48 pixels, in millionths of the view.
+    let (_, _, kept_on, loss_on) = run(0.25 * 1e6 / (64.0 * 48.0));
     assert!(
         kept_off > hidden / 2,
         "without the rule: {kept_off} of {hidden} kept"

@@ -18,8 +18,10 @@ pub struct PruneConfig {
     pub max_screen_radius: Real,
     /// Remove when, over the training views a Gaussian was on screen in since the last
     /// pruning (at least `contribution_views` of them), its blending weights summed over each
-    /// view's pixels average below this many full-resolution pixels (0 disables): it is
-    /// hidden or negligible wherever it is seen, yet costs as much to render as any other.
+    /// view's pixels average below this many millionths of the view (0 disables): it is
+    /// hidden or negligible wherever it is seen, yet costs as much to render as any other. A
+    /// share of the view, not a pixel count, so that the same map at any resolution keeps the
+    /// same Gaussians (1.6 per million is half a pixel of a 640x480 view).
     pub min_contribution: Real,
     pub contribution_views: usize,
 }
@@ -30,10 +32,9 @@ impl Default for PruneConfig {
             min_opacity: 0.02,
             max_world_scale: 0.1,
             max_screen_radius: 0.0,
-            // Off: on 7-Scenes (1000 frames, synchronous) 0.5 gave 42% fewer Gaussians, +0.13
-            // dB and RSS -165 MB, on a 400-frame Replica render the same PSNR with 15% fewer,
-            // but on the built-in 160x120 scene -2.5 dB (0.1: -0.5 dB). A threshold that
-            // carries over between image sizes is not found yet.
+            // Off: half a 640x480 pixel (1.6 per million) gave 7-Scenes 40% fewer Gaussians and
+            // RSS -160 MB, but PSNR -0.5 dB there, +0.8 dB on a Replica render and -0.19 dB on
+            // the built-in scene (one run each; runs of one build vary by 0.2-0.4 dB).
             min_contribution: 0.0,
             contribution_views: 3,
         }
@@ -41,20 +42,20 @@ impl Default for PruneConfig {
 }
 
 /// Adds one training view to each on-screen Gaussian's contributions: `contribution` per
-/// Gaussian in the render's pixels, each of which covers `pixel_area` full-resolution pixels;
+/// Gaussian in the render's pixels, each of which counts `pixel_weight` (the tally's unit);
 /// `radii` > 0 marks the Gaussians on screen (`rows`, sorted, holds every one of them).
 pub fn add_contributions(
     seen: &mut Tally,
     contribution: &[Real],
     radii: &[Real],
     rows: &[u32],
-    pixel_area: Real,
+    pixel_weight: Real,
 ) {
     seen.resize(radii.len());
     for &i in rows {
         let i = i as usize;
         if radii[i] > 0.0 {
-            seen.add(i, contribution[i] * pixel_area);
+            seen.add(i, contribution[i] * pixel_weight);
         }
     }
 }

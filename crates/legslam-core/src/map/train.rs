@@ -471,13 +471,13 @@ impl Mapper {
         // Contributions at the finest level trained only: a Gaussian smaller than a coarser
         // level's pixels can fall between their centres there and seem to make nothing.
         if li == c.finest_level.min(coarsest) {
-            let area = (1usize << (2 * li)) as Real;
+            let per_million = 1e6 / (w * h) as Real; // contributions in millionths of the view
             add_contributions(
                 &mut self.seen,
                 &sc.grads.contribution,
                 &r.radii,
                 &sc.grads.rows,
-                area,
+                per_million,
             );
         }
         self.scratch.rendered = r;
