@@ -34,7 +34,7 @@ impl Default for PruneConfig {
             max_screen_radius: 0.0,
             // Off: half a 640x480 pixel (1.6 per million) gave 7-Scenes 40% fewer Gaussians and
             // RSS -160 MB, but PSNR -0.5 dB there, +0.8 dB on a Replica render and -0.19 dB on
-            // the built-in scene (one run each; runs of one build vary by 0.2-0.4 dB).
+            // the built-in scene.
             min_contribution: 0.0,
             contribution_views: 3,
         }
