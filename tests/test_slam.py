@@ -273,6 +273,34 @@ def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
     assert len(slam.keyframe_frames) <= 3, slam.keyframe_frames
 
 
+def test_real_time_trains_on_after_the_frames_for_its_share_of_the_run(scene):
+    seq = open_dataset(scene)
+
+    def finished(**options):
+        slam = SLAM(SLAMConfig(features=False, final_iters=0, **options), seq[0].K, 160, 120)
+        before = time.perf_counter()  # the run's clock starts between these two
+        slam.step(seq[0].rgb, seq[0].depth)
+        after = time.perf_counter()
+        for i in range(1, 12):
+            slam.step(seq[i].rgb, seq[i].depth)
+        calls, start = [], time.perf_counter()
+        slam.finish(progress=lambda done, total: calls.append((done, total, time.perf_counter())))
+        return calls, before, after, start, time.perf_counter()
+
+    assert finished(mapping_thread=True, final_time=0.0)[0] == []
+    assert finished(mapping_thread=False, final_time=0.5)[0] == []  # synchronous: final_iters only
+    calls, before, after, start, end = finished(mapping_thread=True, final_time=0.5)
+    # Batches of 25 while open-ended, then the count once.
+    assert len(calls) >= 2 and all(total is None for _, total, _ in calls[:-1]), calls
+    assert [done for done, _, _ in calls[:-1]] == [25 * (k + 1) for k in range(len(calls) - 1)]
+    assert calls[-1][:2] == (calls[-2][0], calls[-2][0])
+    # The budget is half the time from the first frame to when finish had stopped the thread
+    # (before its first batch ended): it was spent, and the last batch began within it.
+    assert end - start >= 0.5 * (start - after)
+    if len(calls) >= 3:
+        assert calls[-3][2] - start < 0.5 * (calls[0][2] - before)
+
+
 def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, scene, tmp_path):
     cfg = SLAMConfig(features=False, final_iters=60, mapping_thread=True)
     threaded = run(open_dataset(scene), tmp_path, cfg)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Optional
 
 __all__ = ["Progress"]
 
@@ -25,9 +26,11 @@ class Progress:
         of = "" if self.total is None else f"/{self.total}"
         self._show(f"frame {i + 1}{of}  {fps:5.2f} fps  {text}", i + 1 == self.total)
 
-    def final_iterations(self, done: int, total: int) -> None:
-        """The mapping iterations after the last frame (minutes with a large --final-iters)."""
-        self._show(f"final mapping iterations {done}/{total}", done == total)
+    def final_iterations(self, done: int, total: Optional[int]) -> None:
+        """The mapping iterations after the last frame (minutes with a large --final-iters);
+        total None while a real-time run trains on for as long as `final_time` allows."""
+        of = "" if total is None else f"/{total}"
+        self._show(f"final mapping iterations {done}{of}", done == total)
 
     def _show(self, line: str, last: bool) -> None:
         now = time.perf_counter()

@@ -107,6 +107,7 @@ class SLAM:
         self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch)
                          if c.mapping_thread else self._inline_mapping())
         self._final_stats: list = []
+        self._first_frame_at: Optional[float] = None
 
     def _feature_feed(self, encoder) -> Optional[FeatureFeed]:
         """The keyframes' encoder: language features, place recognition, or both. Without
@@ -133,6 +134,8 @@ class SLAM:
 
     def step(self, rgb: np.ndarray, depth: np.ndarray) -> StepResult:
         i = len(self.trajectory)
+        if self._first_frame_at is None:
+            self._first_frame_at = time.perf_counter()
         with self._timed("frame"):
             with self._timed("preprocessing"):
                 rgb, depth, small = self._prepare(i, rgb, depth)
@@ -343,8 +346,10 @@ class SLAM:
     def finish(self, train: bool = True, progress=None) -> None:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
         mapping iterations (unless `train` is false: a run cut short keeps the map it has), in
-        batches, calling `progress(done, total)` after each; Ctrl-C stops between batches."""
-        if self.mapping_in_thread:
+        batches, calling `progress(done, total)` after each (total None while a real-time run
+        trains on for `final_time`, then (done, done) once); Ctrl-C stops between batches."""
+        in_thread = self.mapping_in_thread
+        if in_thread:
             threaded = self._mapping
             threaded.stop()
             self._mapping = self._inline_mapping()
@@ -353,12 +358,19 @@ class SLAM:
             self._features.drain()
             self._correct()
         total = self.config.final_iters if train else 0
-        for done in range(0, total, FINAL_BATCH):
+        # Real time: as many more as fit in `final_time` of the time the frames took.
+        budget = (self.config.final_time * (time.perf_counter() - self._first_frame_at)
+                  if train and in_thread and self._first_frame_at is not None else 0.0)
+        start, done = time.perf_counter(), 0
+        while done < total or time.perf_counter() - start < budget:
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
-            n = min(FINAL_BATCH, total - done)
+            n = min(FINAL_BATCH, total - done) if done < total else FINAL_BATCH
             self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes))
+            done += n
             if progress is not None:
-                progress(done + n, total)
+                progress(done, total if done <= total else None)
+        if progress is not None and done > total:
+            progress(done, done)
         self.trajectory.follow(self.mapper.keyframe_poses())
 
     def frame_exposures(self) -> Optional[np.ndarray]:
