@@ -195,7 +195,9 @@ def test_text_route_with_a_fake_text_encoder_gives_the_expected_miou(run_copy, m
     assert "note" not in capsys.readouterr().out
     print(f"text route (fake encoder): mIoU {r['miou']:.4f}, by hand {np.nanmean(iou):.4f}")
     assert r["semantic_route"] == "text" and "miou_by_example" not in r and r["semantic_views"] == len(views)
-    assert r["miou"] == pytest.approx(np.nanmean(iou), abs=1e-6)
+    # The queries here are made in float64, legslam's in float32: a pixel whose two best
+    # classes score within rounding may take the other (a map from one build gave 6.4e-6).
+    assert r["miou"] == pytest.approx(np.nanmean(iou), abs=1e-4)
     assert r["miou"] > 0.4
 
 
