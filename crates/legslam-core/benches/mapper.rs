@@ -124,7 +124,8 @@ fn main() {
     };
     // The map with the portable and the AVX2 compositing (the same bits, so alternating them
     // trains the map as either would), and one grown with pruning by contribution at 1.6 per
-    // million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0 skips it), on AVX2 where the CPU has it.
+    // million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0 skips it), on AVX2
+    // where the CPU has it.
     let mut mappers = vec![grow(config.clone())];
     let mut variants: Vec<(&str, usize, bool)> = vec![("portable", 0, false)];
     if avx2_available() {

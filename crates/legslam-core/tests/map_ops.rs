@@ -169,9 +169,9 @@ fn pruning_by_contribution_needs_enough_views_and_spares_rows_not_tallied() {
     for _ in 0..4 {
         one(&mut map, -3.0, 0.0);
     }
-    // Three views of a half-resolution render (a pixel covers 4 full-resolution pixels):
-    // Gaussian 0 makes 0.1 of a pixel in each, Gaussian 1 as little but is off screen in one
-    // view, Gaussian 2 makes 1 pixel in each; Gaussian 3 came after the tally started.
+    // Three views whose render pixels each weigh 4 in the tally's unit: Gaussian 0 makes 0.1
+    // in each, Gaussian 1 as little but is off screen in one view, Gaussian 2 makes 1 in each;
+    // Gaussian 3 came after the tally started.
     let mut seen = Tally::default();
     for view in 0..3 {
         let radius_1 = if view == 0 { 0.0 } else { 2.0 };
