@@ -8,7 +8,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{for_each_group, prefetch_ahead, TileRect, TILE_LANES};
+use super::composite::{for_each_group, prefetch, prefetch_ahead, TileRect, TILE_LANES};
 use super::forward::{split_chunks, Layer};
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 use super::lanes::Avx2;
@@ -35,6 +35,9 @@ mod slot {
     pub const COUNT: usize = 11;
 }
 const SLOTS: usize = slot::COUNT;
+
+/// How many Gaussians ahead the per-Gaussian sums prefetch their pairs' gradients.
+const PAIR_PREFETCH: usize = 4;
 
 fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> Result<(), String> {
     match grad {
@@ -69,6 +72,13 @@ struct LayerScratch {
     g_start: Vec<usize>,
     g_pairs: Vec<u32>,
     cursor: Vec<usize>,
+}
+
+impl LayerScratch {
+    /// Gaussian `i`'s pairs.
+    fn pairs(&self, i: usize) -> &[u32] {
+        &self.g_pairs[self.g_start[i]..self.g_start[i + 1]]
+    }
 }
 
 /// Gradients of a scalar loss with respect to every Gaussian parameter and the camera pose,
@@ -206,7 +216,20 @@ pub fn backward_into(
                 }
             }
             let mut pose = [0.0; 6];
-            for &i in rows_in(&rows, first, CHUNK) {
+            let mine = rows_in(&rows, first, CHUNK);
+            for (at, &i) in mine.iter().enumerate() {
+                // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
+                if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
+                    for (ls, stride) in layer_scratch
+                        .iter()
+                        .zip(strides)
+                        .take(1 + usize::from(coarse))
+                    {
+                        for &pr in ls.pairs(ahead as usize) {
+                            prefetch(&ls.pair_grads[pr as usize * stride..][..stride]);
+                        }
+                    }
+                }
                 let (i, li) = (i as usize, i as usize - first);
                 // Each layer's pairs, in tile order, so that the sums are deterministic.
                 let mut sums = [ScreenGrads::default(); 2];
@@ -214,7 +237,7 @@ pub fn backward_into(
                 for (l, sg) in sums.iter_mut().enumerate().take(1 + usize::from(coarse)) {
                     let ls = layer_scratch[l];
                     let stride = strides[l];
-                    for &pr in &ls.g_pairs[ls.g_start[i]..ls.g_start[i + 1]] {
+                    for &pr in ls.pairs(i) {
                         let s = &ls.pair_grads[pr as usize * stride..][..stride];
                         let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
                         sg.xy += V2::new(s[slot::X], s[slot::Y]);

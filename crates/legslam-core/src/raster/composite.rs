@@ -150,20 +150,27 @@ pub(crate) fn prefetch_ahead(
     features: &[Real],
     k: usize,
 ) {
-    #[cfg(target_arch = "x86_64")]
     if let Some(&gi) = list.get(j + PREFETCH) {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
         let gi = gi as usize;
-        // SAFETY: prefetching never faults; both addresses lie within their slices.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(splats.as_ptr().add(gi) as *const i8);
-            for line in (0..k).step_by(64 / std::mem::size_of::<Real>()) {
-                _mm_prefetch::<_MM_HINT_T0>(features.as_ptr().add(gi * k + line) as *const i8);
-            }
+        prefetch(std::slice::from_ref(&splats[gi]));
+        prefetch(&features[gi * k..][..k]);
+    }
+}
+
+/// Asks the cache for the lines that hold `v`.
+#[inline(always)]
+pub(crate) fn prefetch<T>(v: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let p = v.as_ptr() as *const i8;
+        for offset in (0..std::mem::size_of_val(v)).step_by(64) {
+            // SAFETY: prefetching never faults, and the address lies within `v`.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.add(offset)) };
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (list, j, splats, features, k);
+    let _ = v;
 }
 
 /// Per-pixel accumulators of one tile, structure of arrays, indexed (y - y0) * TILE + (x - x0).
