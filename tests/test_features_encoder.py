@@ -122,3 +122,15 @@ def test_real_encoder_is_stable_across_nearby_frames_and_sizes(real_encoder):
     # The cut graph interpolates its position embeddings: other multiples of 14 work.
     big = Encoder("default", input_size=280).encode(_real_frame(0))
     assert big.shape == (20, 20, 384)
+
+
+def test_int8_encoder_agrees_with_the_full_precision_one(real_encoder):
+    try:
+        int8 = Encoder("dinov2_vits14_int8", input_size=224)
+    except FileNotFoundError as e:
+        pytest.skip(f"int8 encoder not cached ({e})")
+    frame = _real_frame(0)
+    a, b = real_encoder.encode(frame), int8.encode(frame)
+    cos = (a * b).sum(-1)
+    assert cos.mean() > 0.99 and cos.min() > 0.95, (cos.mean(), cos.min())
+    assert not np.array_equal(a, b)

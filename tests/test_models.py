@@ -25,6 +25,10 @@ def test_names_resolve_in_the_cache_and_paths_pass_through(cache, tmp_path):
     cache.mkdir()
     (cache / models.DEFAULT_MODEL).write_bytes(b"x")
     assert models.resolve("default") == cache / models.DEFAULT_MODEL
+    with pytest.raises(FileNotFoundError, match="legslam models fetch"):
+        models.resolve("dinov2_vits14_int8")
+    (cache / models.INT8_MODEL).write_bytes(b"x")
+    assert models.resolve("dinov2_vits14_int8") == cache / models.INT8_MODEL
     assert models.resolve(str(cache / models.DEFAULT_MODEL)) == cache / models.DEFAULT_MODEL
     with pytest.raises(FileNotFoundError, match="export-models"):
         models.resolve("clip_vitb16_text")
@@ -87,6 +91,26 @@ def test_cut_keeps_patch_tokens_without_cls_and_frees_the_input_size(tmp_path):
     np.testing.assert_allclose(tokens, patches @ w.reshape(4, -1).T + b, rtol=1e-4, atol=1e-5)
 
 
+def test_quantised_encoder_keeps_the_contract_and_the_features(tmp_path):
+    _imgfocus_like(tmp_path / "src.onnx", dim=16)
+    models._cut_imgfocus_backbone(tmp_path / "src.onnx", tmp_path / "cut.onnx")
+    models.quantize(tmp_path / "cut.onnx", tmp_path / "int8.onnx")
+    assert not (tmp_path / "int8.onnx.partial").exists()
+    full, int8 = (ort.InferenceSession(str(tmp_path / f), providers=["CPUExecutionProvider"])
+                  for f in ("cut.onnx", "int8.onnx"))
+    assert int8.get_inputs()[0].shape == ["batch", 3, "height", "width"]
+    assert int8.get_modelmeta().custom_metadata_map["patch_size"] == "14"
+    # Quantised it is: integer operators in the graph.
+    ops = {n.op_type for n in onnx.load(str(tmp_path / "int8.onnx")).graph.node}
+    assert ops & {"ConvInteger", "MatMulInteger", "DynamicQuantizeLinear"}, ops
+    x = np.random.default_rng(1).standard_normal((1, 3, 56, 42)).astype(np.float32)
+    a, b = (s.run(None, {"input_image": x})[0][0] for s in (full, int8))
+    assert a.shape == b.shape == (12, 16)
+    cos = (a * b).sum(-1) / np.linalg.norm(a, axis=-1) / np.linalg.norm(b, axis=-1)
+    assert cos.min() > 0.99, cos
+    assert not np.array_equal(a, b)
+
+
 def test_fetch_reports_a_failed_download(cache, monkeypatch):
     def failing(cmd, **kwargs):
         return subprocess.CompletedProcess(cmd, 1, "", "ERROR: No matching distribution found")
@@ -99,10 +123,23 @@ def test_fetch_reports_a_failed_download(cache, monkeypatch):
 
 def test_fetch_is_a_no_op_when_the_cache_is_valid(cache, monkeypatch):
     cache.mkdir()
-    (cache / models.DEFAULT_MODEL).write_bytes(b"prepared model")
+    for name in (models.DEFAULT_MODEL, models.INT8_MODEL):
+        (cache / name).write_bytes(b"prepared model")
+        models.record_in_manifest(cache, name)
+    monkeypatch.setattr(models.subprocess, "run", lambda *a, **k: pytest.fail("downloaded again"))
+    monkeypatch.setattr(models, "quantize", lambda *a: pytest.fail("quantised again"))
+    assert models.fetch_default() == cache / models.DEFAULT_MODEL
+
+
+def test_fetch_quantises_a_cache_from_before_the_int8_encoder(cache, monkeypatch, tmp_path):
+    cache.mkdir()
+    _imgfocus_like(tmp_path / "src.onnx")
+    models._cut_imgfocus_backbone(tmp_path / "src.onnx", cache / models.DEFAULT_MODEL)
     models.record_in_manifest(cache, models.DEFAULT_MODEL)
     monkeypatch.setattr(models.subprocess, "run", lambda *a, **k: pytest.fail("downloaded again"))
     assert models.fetch_default() == cache / models.DEFAULT_MODEL
+    assert models.is_cached(cache, models.INT8_MODEL)
+    assert "quantisation" in models.read_manifest(cache)[models.INT8_MODEL]["source"]
 
 
 def test_cli_models_list_and_export_without_torch(cache, capsys):

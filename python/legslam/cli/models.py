@@ -30,5 +30,5 @@ def run(args) -> int:
         path = directory / filename
         state = "present" if path.is_file() else f"missing ({how})"
         sha = manifest.get(filename, {}).get("sha256", "")[:12]
-        print(f"  {name:24s} {filename:30s} {state} {sha}")
+        print(f"  {name:28s} {filename:34s} {state} {sha}")
     return 0
