@@ -312,3 +312,42 @@ fn gaussians_hidden_behind_a_nearer_surface_are_pruned_by_contribution() {
         "the visible wall's loss: {loss_on} with the rule, {loss_off} without"
     );
 }
+
+#[test]
+fn keyframes_keep_only_the_levels_mapping_uses() {
+    let cfg = MapperConfig {
+        levels: 3,
+        finest_level: 1,
+        grow_level: 2,
+        ..Default::default()
+    };
+    let mut m = Mapper::new(cfg).unwrap();
+    let (rgb, depth, k) = wall(64, 48);
+    let mut sorted = depth.clone();
+    sorted.sort_by(|a, b| a.total_cmp(b));
+    m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
+    let levels = &m.keyframes[0].levels;
+    assert!(levels[0].rgb.is_empty() && levels[0].depth.is_empty());
+    assert_eq!(levels[0].intrinsics.width, 64);
+    assert_eq!(
+        (levels[1].rgb.len(), levels[1].depth.len()),
+        (32 * 24 * 3, 32 * 24)
+    );
+    assert_eq!(levels[2].depth.len(), 16 * 12);
+    // The scene extent still comes from the full-resolution depth.
+    assert_eq!(m.extent(), sorted[sorted.len() / 2]);
+    assert!(m.train(10).unwrap().last.total.is_finite());
+    // Asked for a level it no longer has, training uses the finest it kept.
+    m.config.finest_level = 0;
+    assert!(m.train(5).unwrap().last.total.is_finite());
+
+    // Training at full resolution keeps it.
+    let mut full = Mapper::new(MapperConfig {
+        finest_level: 0,
+        ..Default::default()
+    })
+    .unwrap();
+    let (rgb, depth, k) = wall(64, 48);
+    full.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
+    assert_eq!(full.keyframes[0].levels[0].depth.len(), 64 * 48);
+}

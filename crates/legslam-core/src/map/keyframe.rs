@@ -84,6 +84,27 @@ impl Keyframe {
     }
 }
 
+impl Keyframe {
+    /// Frees the images of the levels finer than `level` (at most the coarsest): a mapper that
+    /// neither trains nor grows there keeps only their intrinsics. A 640x480 keyframe's full
+    /// resolution is three quarters of its pyramid.
+    pub fn release_below(&mut self, level: usize) {
+        let keep = level.min(self.levels.len() - 1);
+        for l in &mut self.levels[..keep] {
+            l.rgb = Vec::new();
+            l.depth = Vec::new();
+        }
+    }
+
+    /// The finest level that still has its images.
+    pub fn finest_kept(&self) -> usize {
+        self.levels
+            .iter()
+            .position(|l| !l.depth.is_empty())
+            .unwrap_or(0)
+    }
+}
+
 /// Halves a level: colour averaged over 2x2 blocks, depth averaged over the block's valid
 /// pixels (0 when none is valid), intrinsics scaled about pixel centres.
 fn downsample(l: &Level) -> Level {

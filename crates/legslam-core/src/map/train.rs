@@ -153,6 +153,9 @@ pub struct Mapper {
     seen: Tally,
     iteration: usize,
     scratch: Scratch,
+    /// The first keyframe's median depth at full resolution (metres): the smallest scene
+    /// extent.
+    first_depth_median: f64,
 }
 
 /// Per-iteration buffers, kept between iterations.
@@ -169,6 +172,16 @@ struct Scratch {
     rendered: Rendered,
     /// Its gradients.
     grads: Gradients,
+}
+
+/// The median of the valid depths, 1 when there is none.
+fn median_depth(depth: &[Real]) -> f64 {
+    let mut depths: Vec<Real> = depth.iter().copied().filter(|d| *d > 0.0).collect();
+    if depths.is_empty() {
+        return 1.0;
+    }
+    let m = depths.len() / 2;
+    *depths.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1 as f64
 }
 
 fn camera(pose: &Pose, intr: Intrinsics) -> Result<Camera, String> {
@@ -192,6 +205,7 @@ impl Mapper {
             seen: Tally::default(),
             iteration: 0,
             scratch: Scratch::default(),
+            first_depth_median: 1.0,
             config,
         })
     }
@@ -261,6 +275,11 @@ impl Mapper {
         );
         let added = self.cap_growth(added);
         self.adam.append(added);
+        if id == 0 {
+            self.first_depth_median = median_depth(&kf.levels[0].depth);
+        }
+        let mut kf = kf;
+        kf.release_below(self.config.finest_level.min(self.config.grow_level));
         self.keyframes.push(kf);
         self.update_extent();
         Ok((id, added))
@@ -295,7 +314,8 @@ impl Mapper {
             .keyframes
             .get_mut(id as usize)
             .ok_or_else(|| format!("no keyframe {id}"))?;
-        let level = &kf.levels[self.config.grow_level.min(kf.levels.len() - 1)];
+        let grow_level = self.config.grow_level.min(kf.levels.len() - 1);
+        let level = &kf.levels[grow_level.max(kf.finest_kept())];
         assign_features(&mut self.map, level, &kf.pose, id, &grid);
         kf.features = Some(grid);
         Ok(())
@@ -315,19 +335,7 @@ impl Mapper {
             .iter()
             .map(|c| (0..3).map(|a| (c[a] - mean[a]).powi(2)).sum::<f64>().sqrt())
             .fold(0.0, f64::max);
-        let mut depths: Vec<Real> = self.keyframes[0].levels[0]
-            .depth
-            .iter()
-            .copied()
-            .filter(|d| *d > 0.0)
-            .collect();
-        let median = if depths.is_empty() {
-            1.0
-        } else {
-            let m = depths.len() / 2;
-            *depths.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1 as f64
-        };
-        self.adam.config.scene_extent = (1.1 * spread).max(median) as Real;
+        self.adam.config.scene_extent = (1.1 * spread).max(self.first_depth_median) as Real;
     }
 
     pub fn extent(&self) -> Real {
@@ -380,7 +388,8 @@ impl Mapper {
         let coarsest = kf.levels.len() - 1;
         let li = coarsest
             .saturating_sub(kf.uses / c.uses_per_level.max(1))
-            .max(c.finest_level.min(coarsest));
+            .max(c.finest_level.min(coarsest))
+            .max(kf.finest_kept());
         // Features are rendered `feature_level_offset` levels coarser, from the colour pass's
         // projection: their target is an upsampled patch grid, and K channels cost K times a
         // colour channel.
