@@ -82,9 +82,7 @@ impl Keyframe {
             uses: 0,
         })
     }
-}
 
-impl Keyframe {
     /// Frees the images of the levels finer than `level` (at most the coarsest): a mapper that
     /// neither trains nor grows there keeps only their intrinsics. A 640x480 keyframe's full
     /// resolution is three quarters of its pyramid.

@@ -248,7 +248,7 @@ impl Mapper {
         pose: Pose,
     ) -> Result<(u32, usize), String> {
         let id = self.keyframes.len() as u32;
-        let kf = Keyframe::new(id, rgb, depth, intr, pose, self.config.levels)?;
+        let mut kf = Keyframe::new(id, rgb, depth, intr, pose, self.config.levels)?;
         let level = &kf.levels[self.config.grow_level.min(kf.levels.len() - 1)];
         let rendered = if self.map.is_empty() {
             None
@@ -278,7 +278,6 @@ impl Mapper {
         if id == 0 {
             self.first_depth_median = median_depth(&kf.levels[0].depth);
         }
-        let mut kf = kf;
         kf.release_below(self.config.finest_level.min(self.config.grow_level));
         self.keyframes.push(kf);
         self.update_extent();

@@ -163,10 +163,12 @@ pub(crate) fn prefetch<T>(v: &[T]) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let p = v.as_ptr() as *const i8;
-        for offset in (0..std::mem::size_of_val(v)).step_by(64) {
-            // SAFETY: prefetching never faults, and the address lies within `v`.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.add(offset)) };
+        let start = v.as_ptr() as usize;
+        let end = start + std::mem::size_of_val(v);
+        // From the line that holds the first byte to the one that holds the last.
+        for line in (start & !63..end).step_by(64) {
+            // SAFETY: prefetching never faults, whatever the address.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
