@@ -155,6 +155,8 @@ pub fn backward_into(
     let strides = [SLOTS + main.k, SLOTS + k];
     let layers = [&st.main, &st.coarse];
     let layer_scratch = [&scratch.main, &scratch.coarse];
+    // The layers this pass walked: the main one, and the features' own when coarser.
+    let layers_walked = 1 + usize::from(coarse);
 
     // Only the rows of Gaussians on screen can be non-zero: clear the rows the last pass
     // touched (or everything, when the map changed size) instead of the whole map's.
@@ -220,11 +222,7 @@ pub fn backward_into(
             for (at, &i) in mine.iter().enumerate() {
                 // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
                 if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
-                    for (ls, stride) in layer_scratch
-                        .iter()
-                        .zip(strides)
-                        .take(1 + usize::from(coarse))
-                    {
+                    for (ls, stride) in layer_scratch.iter().zip(strides).take(layers_walked) {
                         for &pr in ls.pairs(ahead as usize) {
                             prefetch(&ls.pair_grads[pr as usize * stride..][..stride]);
                         }
@@ -234,7 +232,7 @@ pub fn backward_into(
                 // Each layer's pairs, in tile order, so that the sums are deterministic.
                 let mut sums = [ScreenGrads::default(); 2];
                 let mut weight = 0.0;
-                for (l, sg) in sums.iter_mut().enumerate().take(1 + usize::from(coarse)) {
+                for (l, sg) in sums.iter_mut().enumerate().take(layers_walked) {
                     let ls = layer_scratch[l];
                     let stride = strides[l];
                     for &pr in ls.pairs(i) {
