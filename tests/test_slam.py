@@ -276,8 +276,8 @@ def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
 def test_real_time_trains_on_after_the_frames_for_its_share_of_the_run(scene):
     seq = open_dataset(scene)
 
-    def finished(**options):
-        slam = SLAM(SLAMConfig(features=False, final_iters=0, **options), seq[0].K, 160, 120)
+    def finished(final_iters=0, **options):
+        slam = SLAM(SLAMConfig(features=False, final_iters=final_iters, **options), seq[0].K, 160, 120)
         before = time.perf_counter()  # the run's clock starts between these two
         slam.step(seq[0].rgb, seq[0].depth)
         after = time.perf_counter()
@@ -299,6 +299,12 @@ def test_real_time_trains_on_after_the_frames_for_its_share_of_the_run(scene):
     assert end - start >= 0.5 * (start - after)
     if len(calls) >= 3:
         assert calls[-3][2] - start < 0.5 * (calls[0][2] - before)
+    # With final iterations too, the count is open until the time is spent: never "25/25"
+    # and then more.
+    calls = finished(final_iters=25, mapping_thread=True, final_time=0.5)[0]
+    assert len(calls) >= 2 and calls[0][0] == 25, calls
+    assert all(total is None for _, total, _ in calls[:-1]), calls
+    assert calls[-1][:2] == (calls[-2][0], calls[-2][0])
 
 
 def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, scene, tmp_path):

@@ -361,6 +361,8 @@ class SLAM:
         # Real time: as many more as fit in `final_time` of the time the frames took.
         budget = (self.config.final_time * (time.perf_counter() - self._first_frame_at)
                   if train and in_thread and self._first_frame_at is not None else 0.0)
+        # Then the count is known only once the time is spent.
+        open_ended = budget > 0
         start, done = time.perf_counter(), 0
         while done < total or time.perf_counter() - start < budget:
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
@@ -368,8 +370,8 @@ class SLAM:
             self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes))
             done += n
             if progress is not None:
-                progress(done, total if done <= total else None)
-        if progress is not None and done > total:
+                progress(done, None if open_ended else total)
+        if progress is not None and open_ended:
             progress(done, done)
         self.trajectory.follow(self.mapper.keyframe_poses())
 
