@@ -8,7 +8,7 @@ median and mean ms per frame, and lost frames.
     python benches/bench_tracking.py [PATH] [--max-frames N] [--variants] [--no-open3d]
 
 PATH defaults to ../shared/data/7scenes_tsdf_fusion/data (relative to the repository root).
-Open3D (`pip install open3d`) is a benchmark-only dependency; without it its row is skipped.
+Open3D (`pip install open3d`) is a benchmark-only dependency; without it its rows are skipped.
 Timing covers everything from the decoded frame to the pose (pyramid construction included),
 excluding JPEG/PNG decoding, which is shared by both methods.
 
@@ -210,7 +210,7 @@ def main(argv=None):
             runs.append(lambda: run_open3d(frames))
             runs.append(lambda: run_open3d_dense(frames))
         except ImportError:
-            print("open3d not installed: its row is skipped (pip install open3d)")
+            print("open3d not installed: its rows are skipped (pip install open3d)")
 
     rows = []
     stamps = [f.timestamp for f in frames]
