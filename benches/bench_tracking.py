@@ -120,7 +120,8 @@ def run_open3d_dense(frames):
         t0 = time.perf_counter()
         mm = np.nan_to_num(np.rint(f.depth * depth_scale), posinf=0.0).clip(0, 65535)
         cur.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(mm.astype(np.uint16))))
-        cur.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(f.rgb))))
+        rgb = o3c.Tensor(np.ascontiguousarray(f.rgb))
+        cur.set_data_from_image("color", o3d.t.geometry.Image(rgb))
         if i > 0:
             try:
                 r = model.track_frame_to_model(cur, ray, depth_scale, depth_max, 0.07)
