@@ -1,6 +1,6 @@
 """The tracking policy's order of references (slam.track_policy): the map first every
-`map_every`-th frame, the last tracked frame first in between, and each next reference only
-when the one before failed."""
+`map_every`-th frame (never with 0), the last tracked frame first otherwise, and each next
+reference only when the one before failed."""
 
 from __future__ import annotations
 
@@ -48,6 +48,15 @@ def test_the_map_comes_first_every_nth_frame_and_the_last_frame_between():
         assert track(policy).state == "ok"
         firsts.append(tracker.asked[0])
     assert firsts == ["frame", "frame", "map", "frame", "frame", "map", "frame"]
+
+
+def test_the_map_only_after_the_last_frame_fails_when_map_every_is_zero():
+    tracker = RecordingTracker(works=("map",))
+    policy = TrackingPolicy(tracker, np.eye(3), 0.8, 0.5, map_every=0)
+    for _ in range(6):
+        tracker.asked.clear()
+        assert track(policy).state == "ok"
+        assert tracker.asked == ["frame", "map"]
 
 
 def test_every_frame_against_the_map_when_map_every_is_one():

@@ -2,10 +2,11 @@
 
 Every `map_every`-th frame the map rendered at the predicted pose comes first; where it covers
 too little of the view, or the alignment against it fails, the last tracked frame, then the last
-keyframe. The frames between come first against the last tracked frame, then the map, then the
+keyframe. The other frames come first against the last tracked frame, then the map, then the
 last keyframe: a frame aligns more precisely with the frame before it than with a render of the
-map (sharper, and measured a moment ago), and the map's turns keep that chain from drifting. A
-frame is lost only when all of them fail.
+map (sharper, and measured a moment ago). With `map_every` 0 the map is never first: the chain
+of frames runs from keyframe to keyframe, and the keyframe pose graph (covisibility edges, loops)
+keeps it from drifting. A frame is lost only when all of them fail.
 
 An alignment fails when the tracker calls it lost, and also when its residual jumps well
 above the recent ones: a camera carried elsewhere can still align with
@@ -42,7 +43,7 @@ class TrackingPolicy:
     """Tracks frames (at the tracking size, with intrinsics `K`) against the map, falling back
     to recent views. `reference_alpha`: a rendered pixel is trusted where its alpha exceeds
     this; below `min_coverage` trusted pixels the render is no reference. `map_every`: the map
-    comes first every this many frames, the last tracked frame first in between."""
+    comes first every this many frames (0: never), the last tracked frame first otherwise."""
 
     def __init__(self, tracker: Tracker, K: np.ndarray, reference_alpha: float, min_coverage: float,
                  jump_ratio: float = float("inf"), map_every: int = 1):
@@ -67,7 +68,7 @@ class TrackingPolicy:
                                                      else trusted.mean())
         reason = None
         self._tracked += 1
-        map_first = self._tracked % self.map_every == 0
+        map_first = self.map_every > 0 and self._tracked % self.map_every == 0
         for ref in self._references(map_reference, fallbacks, map_first):
             res = self.tracker.track(rgb, depth, self.K, init_pose=predicted, reference=ref)
             jumped = None if res.lost else self.jump.check(res.residual_rms)
