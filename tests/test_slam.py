@@ -90,6 +90,9 @@ def test_config_files_and_unknown_options(tmp_path):
     slam = SLAM(cfg, np.eye(3) * [[100], [100], [1]], 64, 48)
     assert slam.mapper.config()["window"] == 4, "a section's option reaches the engine"
     assert slam.tracking.tracker.config["max_depth"] == 8
+    # Keyframes are aligned with the tracker's options, `covisibility_coarser` levels coarser.
+    covis = slam.covisibility.tracker.config
+    assert covis["max_depth"] == 8 and covis["finest_level"] == slam.tracking.tracker.config["finest_level"] + 1
     (tmp_path / "bad.json").write_text('{"keyframe_translaton": 0.2}')
     with pytest.raises(ValueError, match="unknown option.*keyframe_translaton"):
         SLAMConfig.from_file(tmp_path / "bad.json")

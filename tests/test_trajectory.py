@@ -1,7 +1,8 @@
 """The trajectory beyond tracking: place recognition (RANSAC + Umeyama on keypoint matches,
 retrieval by descriptor), relocalisation of a kidnapped camera, loop closure on a drifted loop
-and the refusal of a false one, on the built-in scene. Tests that need the DINOv2 encoder skip
-when it is not cached (`legslam models fetch`)."""
+and the refusal of a false one, covisibility edges (candidates, alignment, a drifted path held
+back), on the built-in scene. Tests that need the DINOv2 encoder skip when it is not cached
+(`legslam models fetch`)."""
 
 import numpy as np
 import pytest
@@ -9,6 +10,7 @@ import pytest
 from legslam.datasets import open as open_dataset, synthetic
 from legslam.eval import ate
 from legslam.slam import SLAM, SLAMConfig
+from legslam.slam.covisibility import Covisibility
 from legslam.slam.keyframes import rotation_deg
 from legslam.eval.trajectory import umeyama
 from legslam.slam.place_recognition import (Place, PlaceIndex, global_descriptor, keypoints,
@@ -284,12 +286,12 @@ class Drifting:
         return type(t)(self.step @ t.pose, t.state, t.coverage, t.reason)
 
 
-def drifted_loop(encoder, room, loop_closure: bool, frames: int = 84):
+def drifted_loop(encoder, room, loop_closure: bool, frames: int = 84, covisibility_edges: int = 0):
     K, view = room
     path = turn_in_place(frames, 360.0 / 72)  # a full turn and a bit more
     # Frame to frame only (never the map: it would take the drift back by itself on return).
     cfg = SLAMConfig(features=False, final_iters=0, loop_closure=loop_closure, relocalise=False,
-                     min_reference_coverage=1.0)
+                     min_reference_coverage=1.0, covisibility_edges=covisibility_edges)
     slam = SLAM(cfg, K, W, H, encoder=encoder)
     slam.tracking = Drifting(slam.tracking, 0.03, 0.001)
     for pose in path:
@@ -314,20 +316,25 @@ def test_a_drifted_loop_is_closed_and_brought_back(encoder, room):
     assert np.allclose(slam.mapper.keyframe_poses(), np.stack(slam.loops.poses), atol=1e-6)
 
 
+def straight_chain(loops, n: int):
+    """`loops` (a LoopClosure) with n keyframes 10 cm apart in a line, each tracked after the
+    one before."""
+    step = np.eye(4)
+    step[:3, 3] = [0.1, 0, 0]
+    pose = np.eye(4)
+    for k in range(n):
+        loops.add_keyframe(frame=10 * k, pose=pose, after=k - 1 if k else None)
+        pose = pose @ step
+    return loops
+
+
 def test_a_false_loop_is_rejected_and_logged(room, caplog):
     """Two places that look alike (the same view) but are 1 m apart in the graph: the loop
     edge between them contradicts the odometry and is dropped, the poses stay."""
     from legslam.slam.loop_closure import LoopClosure
     from legslam.slam.place_recognition import Recognised
 
-    cfg = SLAMConfig(loop_min_gap=3)
-    loops = LoopClosure(cfg, places=None)
-    step = np.eye(4)
-    step[:3, 3] = [0.1, 0, 0]
-    pose = np.eye(4)
-    for k in range(10):
-        loops.add_keyframe(frame=10 * k, pose=pose, after=k - 1 if k else None)
-        pose = pose @ step
+    loops = straight_chain(LoopClosure(SLAMConfig(loop_min_gap=3), places=None), 10)
     before = np.stack(loops.poses)
     # Keyframe 9 "recognised" at keyframe 0's place, as twin rooms would make it.
     false = Recognised(pose=loops.poses[0], keyframe=0, similarity=0.95, inliers=40, matches=60,
@@ -346,8 +353,94 @@ def test_without_the_encoder_no_features_runs_without_place_recognition(scene, t
     with caplog.at_level("WARNING", logger="legslam"):
         slam = SLAM(SLAMConfig(features=False, final_iters=0), scene[0].K, W, H)
     assert "no relocalisation or loop closure" in caplog.text
-    assert slam.places is None and slam.relocaliser is None and slam.loops is None
+    assert slam.places is None and slam.relocaliser is None and slam.loops.places is None
     run_frames(slam, [scene[i] for i in range(3)])
-    assert "relocalisations" not in slam.trajectory_events()
+    events = slam.trajectory_events()
+    assert "relocalisations" not in events and "loop_closures" not in events
+    assert "covisibility_edges" in events  # the pose graph needs no encoder
     with pytest.raises(FileNotFoundError):  # language features still need it
         SLAM(SLAMConfig(final_iters=0), scene[0].K, W, H)
+
+
+# --- covisibility edges -----------------------------------------------------------------------
+
+def test_covisibility_candidates_are_the_older_keyframes_that_see_most_of_the_view():
+    # A wall 2 m ahead, 3.2 m of it in view; keyframes beside the new one see less of it the
+    # farther they stand, one looks away, and one is the keyframe the new one was tracked after.
+    K = np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]])
+    wall = np.full((H, W), 2.0, np.float32)
+    rgb = np.zeros((H, W, 3), np.uint8)
+
+    def at(x, turned=False):
+        T = np.eye(4)
+        T[0, 3] = x
+        if turned:
+            T[:3, :3] = rotation([0, 1, 0], 180)
+        return T
+    poses = [at(0.0), at(1.0), at(0.2), at(2.5), at(0.0, turned=True), at(0.0)]
+    cov = Covisibility(SLAMConfig(covisibility_edges=2, covisibility_min_overlap=0.3), None, K)
+    for _ in poses:
+        cov.add(rgb, wall)
+    ranked = cov.candidates(5, poses, exclude=0)
+    # Keyframe 2 sees 94% of the view, 1 69%; 3 (22%) is below the threshold, 4 faces away.
+    assert [k for k, _ in ranked] == [2, 1], ranked
+    assert abs(ranked[0][1] - (1 - 0.2 / 3.2)) < 0.05 and abs(ranked[1][1] - (1 - 1.0 / 3.2)) < 0.05
+    cov.config = SLAMConfig(covisibility_edges=8, covisibility_min_overlap=0.3)
+    assert [k for k, _ in cov.candidates(5, poses, exclude=None)] == [0, 2, 1]
+    cov.config = SLAMConfig(covisibility_edges=0)
+    assert cov.candidates(5, poses, exclude=None) == []
+
+
+def test_a_covisibility_edge_measures_the_keyframes_true_relative_pose(room):
+    K, view = room
+    path = turn_in_place(4, 10.0)
+    old_pose, new_pose = path[0], path[2]  # 20 degrees apart round the room
+    tracker = Tracker(levels=3, finest_level=0)
+    cov = Covisibility(SLAMConfig(covisibility_min_overlap=0.3), tracker, K)
+    for pose in (old_pose, new_pose):
+        cov.add(*view(pose))
+    # The old keyframe's pose is off by 3 cm and 1.5 degrees, as a chain of alignments leaves it.
+    drifted = old_pose.copy()
+    drifted[:3, :3] = rotation([0.3, 0.2, 1], 1.5) @ drifted[:3, :3]
+    drifted[:3, 3] += [0.02, -0.02, 0.01]
+    (edge,) = cov.edges(1, [drifted, new_pose])
+    assert (edge.new, edge.old) == (1, 0) and edge.inlier_ratio > 0.65 and edge.overlap > 0.5
+    truth = np.linalg.inv(new_pose) @ old_pose
+    assert np.linalg.norm(edge.measurement[:3, 3] - truth[:3, 3]) < 0.005
+    assert rotation_deg(edge.measurement, truth) < 0.3
+    # A keyframe that saw another part of the room, though its pose says it saw this one: the
+    # alignment does not verify, and no edge is made.
+    cov.add(*view(turn_in_place(8, 45.0)[4]))
+    assert cov.edges(2, [drifted, new_pose, old_pose], exclude=1) == []
+
+
+def test_covisibility_edges_hold_a_drifting_camera_back(encoder, room):
+    # The same drifted turn as the loop-closure test, with no loop closure: each keyframe's
+    # alignments with the keyframes that see what it sees take most of the drift back.
+    with_edges, gt = drifted_loop(encoder, room, loop_closure=False, covisibility_edges=4)
+    without, _ = drifted_loop(encoder, room, loop_closure=False)
+    err, err_without = ate(gt, np.stack(with_edges.poses))["rmse"], ate(gt, np.stack(without.poses))["rmse"]
+    assert err < 0.5 * err_without, (err, err_without)
+    assert with_edges.loops.covisible > 0 and not with_edges.loops.events
+    events = with_edges.trajectory_events()
+    assert events["covisibility_edges"] == with_edges.loops.covisible
+    # The map moved with its keyframes.
+    assert np.allclose(with_edges.mapper.keyframe_poses(), np.stack(with_edges.loops.poses), atol=1e-6)
+
+
+def test_a_contradicting_covisibility_edge_is_rejected_and_logged(caplog):
+    from legslam.slam.covisibility import Covisible
+    from legslam.slam.loop_closure import LoopClosure
+
+    loops = straight_chain(LoopClosure(SLAMConfig(), places=None), 6)
+    before = np.stack(loops.poses)
+    right = Covisible(5, 3, np.linalg.inv(before[5]) @ before[3], 0.9, 0.8)
+    wrong = Covisible(5, 2, np.linalg.inv(before[5]) @ before[0], 0.9, 0.8)  # 30 cm off
+    with caplog.at_level("WARNING", logger="legslam"):
+        corrections = loops.add_covisible([right, wrong])
+    assert "covisibility edge" in caplog.text and "rejected" in caplog.text
+    assert loops.covisible == 1 and loops.rejected_covisible[0]["keyframes"] == [2, 5]
+    assert not loops.rejected  # no loop edge was involved
+    assert np.allclose(corrections @ before, np.stack(loops.poses))
+    assert np.allclose(np.stack(loops.poses), before, atol=1e-6)
+    assert loops.add_covisible([]) is None

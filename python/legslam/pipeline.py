@@ -141,6 +141,8 @@ def _timing_table(slam: SLAM, wall_s: float, live_s: float, viewer_ms: list[floa
     table = {k: summary(v) for k, v in slam.timings.items()}
     table["feature_extraction (per keyframe, worker thread)"] = summary(slam.feature_timings["extraction"])
     table["compression (per keyframe)"] = summary(slam.feature_timings["compression"])
+    if slam.covisibility is not None:
+        table["covisibility (per keyframe, within mapping)"] = summary(slam.covisibility_ms)
     for key in ("render_s", "loss_s", "backward_s", "step_s"):
         table[f"mapping.{key[:-2]}"] = {"total_s": float(sum(getattr(s, key) for s in slam.mapping_stats))}
     if slam.config.mapping_thread:

@@ -178,13 +178,16 @@ class SLAMConfig:
     #: `min_reference_coverage` of trusted pixels, the last keyframe is the reference instead.
     reference_alpha: float = 0.8
     min_reference_coverage: float = 0.5
-    #: Every this many frames a frame is tracked against the map first; the frames between
-    #: against the last tracked frame first (then the map; see track_policy). 1: the map
-    #: first always. With 5 instead of 1, ATE on a 400-frame Replica render (exact depth) went
-    #: 1.00 -> 0.92 cm synchronous and 3.33 -> 1.03 cm in real time (odometry 1.15 cm), on
-    #: 7-Scenes (Kinect) 4.06 -> 3.75 cm synchronous and 3.96 -> 4.39 cm in real time (odometry
-    #: 4.88 cm): never worse than the odometry in the four, where 1 was 3x worse once.
-    map_reference_every: int = 5
+    #: Every this many frames a frame is tracked against the map first; the others against
+    #: the last tracked frame first (then the map; see track_policy). 0: the map never first,
+    #: only where the last frame fails; 1: the map first always. With covisibility edges
+    #: (synchronous runs, keyframes aligned at the tracking level), 0 against 5: a 400-frame
+    #: Replica render 0.55 -> 0.47 cm ATE and 33.83 -> 33.65 dB every 5th frame, the same with
+    #: Kinect-like depth noise 0.94 -> 0.52 cm and 32.38 -> 33.68 dB (against the map, each
+    #: 5th frame jumped 0.5 cm from the chain of frames), 7-Scenes 4.30 -> 4.14 cm and 24.67 ->
+    #: 24.91 dB. (Without covisibility edges, 5 against 1 had taken real time on the Replica
+    #: render from 3.3 to 1.0 cm.)
+    map_reference_every: int = 0
     #: With `relocalise`: an alignment whose residual is more than this many times the recent
     #: median is refused as lost, for relocalisation to place (the camera jumped; see
     #: track_policy). On the built-in scene a jump tripled it.
@@ -221,6 +224,21 @@ class SLAMConfig:
     place_min_inlier_ratio: float = 0.65
     #: Loop candidates are at least this many keyframes older than the new keyframe.
     loop_min_gap: int = 15
+    #: Covisibility edges (legslam.slam.covisibility): each new keyframe is aligned by the
+    #: tracker with up to this many older keyframes whose views its depth lands in on at least
+    #: `covisibility_min_overlap` of its pixels, and each alignment that verifies becomes a
+    #: pose-graph edge (as sure as a loop edge). 0 turns them off. Synchronous, 4 against 0
+    #: (with the map first every 5th frame, as before them): ATE 0.97 -> 0.45 cm and 32.68 ->
+    #: 34.12 dB every 5th frame on a 400-frame Replica render, 1.38 -> 0.53 cm on the same with
+    #: Kinect-like depth noise (odometry 1.15 and 1.23 cm), 7-Scenes 3.37 -> 4.05 cm (odometry
+    #: 4.88) and 24.52 -> 24.92 dB, the frames agreeing better with each other under the new
+    #: poses than under the dataset's (README, "Relocalisation and loop closure").
+    covisibility_edges: int = 4
+    covisibility_min_overlap: float = 0.3
+    #: Keyframes are aligned this many pyramid levels coarser than frames are tracked (1:
+    #: 160x120 for 320x240 tracking, a quarter of the work; offline, edges as accurate on
+    #: both Replica renders, 0.20 against 0.17-0.19 cm median error).
+    covisibility_coarser: int = 1
     #: Odometry edges between keyframes: standard deviation per metre moved (at least 10 cm
     #: counted) and per radian turned (at least 5 degrees counted); loop edges: metres and
     #: degrees. Odometry drifts 1-2% on 7-Scenes: these leave room for it, lest a true loop
@@ -281,6 +299,14 @@ class SLAMConfig:
             opts["levels"] = fitting_levels(width, height, self.tracker.finest_level)
         return opts
 
+    def covisibility_tracker_options(self, width: int, height: int) -> dict:
+        """The tracker options of keyframe alignment (`covisibility_coarser` levels coarser than
+        tracking) for tracking images of width x height."""
+        opts = self.tracker_options(width, height)
+        opts["finest_level"] = min(4, opts["finest_level"] + self.covisibility_coarser)
+        opts["levels"] = min(opts["levels"], fitting_levels(width, height, opts["finest_level"]))
+        return opts
+
     @property
     def place_recognition(self) -> bool:
         """Whether keyframes' places are kept (for relocalisation or loop closure)."""
@@ -335,7 +361,7 @@ _RANGES = {
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
     "final_time": (0.0, _INF),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
-    "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (1, _INF),
+    "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (0, _INF),
     "jump_residual_ratio": (1.0, _INF),
     "encoder_size": (28, _INF), "encoder_threads": (0, _INF),
     # Checked against the encoder's own dimension once it is loaded; the bound keeps an absurd
@@ -346,6 +372,8 @@ _RANGES = {
     "place_match_ratio": (1e-6, 1.0), "place_ransac_threshold": (1e-6, _INF),
     "place_min_inliers": (3, _INF), "place_min_inlier_ratio": (0.0, 1.0),
     "place_min_overlap": (0.0, 1.0), "loop_min_gap": (1, _INF),
+    "covisibility_edges": (0, _INF), "covisibility_min_overlap": (0.0, 1.0),
+    "covisibility_coarser": (0, 4),
     "odometry_sigma_translation": (1e-6, _INF), "odometry_sigma_rotation": (1e-6, _INF),
     "loop_sigma_translation": (1e-6, _INF), "loop_sigma_rotation": (1e-6, _INF),
 }

@@ -1,7 +1,8 @@
 """Loop closure: a pose graph of keyframes (`PoseGraph`), with an odometry edge from each
-keyframe to the one it was tracked after, and a loop edge wherever a new keyframe recognises
+keyframe to the one it was tracked after, a loop edge wherever a new keyframe recognises
 the place of an old one (outside the recent `loop_min_gap` keyframes; verified as
-relocalisation is). The optimised graph gives each keyframe a correction; the SLAM loop moves
+relocalisation is), and covisibility edges to the older keyframes that see the same surfaces
+(`Covisibility`). The optimised graph gives each keyframe a correction; the SLAM loop moves
 the map (each Gaussian with the keyframe that made it) and every frame with it.
 
 Odometry edges carry the error odometry really makes: a standard deviation that grows with
@@ -18,6 +19,7 @@ from typing import Optional
 
 import numpy as np
 
+from .covisibility import Covisible
 from .keyframes import rotation_deg
 from .place_recognition import PlaceIndex, Recognised
 from .pose_graph import PoseGraph, information, relative
@@ -50,20 +52,23 @@ class LoopClosed:
 
 class LoopClosure:
     """The keyframe pose graph and loop detection. `config`: the SLAMConfig (loop_* and
-    odometry_sigma_* options); `places`: the keyframes' places."""
+    odometry_sigma_* options); `places`: the keyframes' places (None: no loops are detected,
+    the graph takes covisibility edges only)."""
 
-    def __init__(self, config, places: PlaceIndex):
+    def __init__(self, config, places: Optional[PlaceIndex]):
         self.config, self.places = config, places
         self.graph = PoseGraph()
         #: Loops closed, and loop edges the optimisation rejected (as logged).
         self.events: list[LoopClosed] = []
         self.rejected: list[dict] = []
+        #: Covisibility edges the optimisation rejected (as logged).
+        self.rejected_covisible: list[dict] = []
         #: Per keyframe, the frame it was made from.
         self._frames: list[int] = []
 
     @property
     def poses(self) -> list[np.ndarray]:
-        """Keyframe poses, as corrected by the loops closed so far."""
+        """Keyframe poses, as the graph's edges so far place them."""
         return self.graph.poses
 
     def add_keyframe(self, frame: int, pose: np.ndarray, after: Optional[int]) -> None:
@@ -84,6 +89,8 @@ class LoopClosure:
 
     def detect(self, keyframe: int) -> Optional[Recognised]:
         """A verified loop from `keyframe` (its place known) to an old keyframe, or None."""
+        if self.places is None:
+            return None
         old = [k for k in self.places.places if k <= keyframe - self.config.loop_min_gap]
         if not old or keyframe not in self.places.places:
             return None
@@ -93,33 +100,60 @@ class LoopClosure:
         """Adds the loop edge `found` (keyframe's pose as recognised against `found.keyframe`)
         and optimises. Returns each keyframe's correction (n x 4 x 4, world to world), or None
         when the edge was rejected (then dropped and logged)."""
-        c = self.config
         t0 = time.perf_counter()
-        before = np.stack(self.graph.poses)
         old = found.keyframe
         measured = relative(self.graph.poses[old], found.pose)
-        sigma_t, sigma_r = c.loop_sigma_translation, np.radians(c.loop_sigma_rotation)
-        edges = self.graph.edges + [None]  # as they are in the result: the new edge last
-        new_edge = self.graph.add_edge(old, keyframe, measured, information(sigma_t, sigma_r),
-                                       kind="loop")
-        edges[new_edge] = self.graph.edges[new_edge]
-        result = self.graph.optimize()
+        edge = self.graph.add_edge(old, keyframe, measured, self._loop_information(), kind="loop")
+        before, rejected = self._optimise()
         ms += 1e3 * (time.perf_counter() - t0)
-        for k in result.rejected:  # logged by the graph
-            self.rejected.append({"frame": self._frames[max(edges[k].i, edges[k].j)],
-                                  "keyframes": [edges[k].i, edges[k].j],
-                                  "chi2": round(float(result.chi2[k]), 2)})
-        if new_edge in result.rejected:
+        if edge in rejected:
             self.graph.poses = list(before)  # the other edges held them there
             return None
-        after = np.stack(self.graph.poses)
-        corrections = after @ np.linalg.inv(before)
-        shift = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
-        turn = [rotation_deg(a, b) for a, b in zip(before, after)]
+        corrections, shift_cm, turn_deg = self._corrections(before)
         event = LoopClosed(self._frames[keyframe], keyframe, old, found.similarity,
-                           found.inlier_ratio, 100 * float(shift.max()), float(max(turn)), ms)
+                           found.inlier_ratio, shift_cm, turn_deg, ms)
         self.events.append(event)
         log.info("loop closed: keyframe %d (frame %d) with keyframe %d; keyframes moved up to %.2f cm "
                  "and %.2f deg (%.0f ms)", keyframe, event.frame, old, event.correction_cm,
                  event.correction_deg, ms)
         return corrections
+
+    def add_covisible(self, found: list[Covisible]) -> Optional[np.ndarray]:
+        """Adds the covisibility edges `found` and optimises. Returns each keyframe's correction
+        (n x 4 x 4, world to world), or None when there was no edge to add."""
+        if not found:
+            return None
+        for c in found:
+            self.graph.add_edge(c.new, c.old, c.measurement, self._loop_information(), kind="covisibility")
+        before, _ = self._optimise()
+        return self._corrections(before)[0]
+
+    @property
+    def covisible(self) -> int:
+        """The covisibility edges in the graph (those rejected so far are not)."""
+        return sum(e.kind == "covisibility" for e in self.graph.edges)
+
+    def _loop_information(self) -> np.ndarray:
+        c = self.config
+        return information(c.loop_sigma_translation, np.radians(c.loop_sigma_rotation))
+
+    def _optimise(self) -> tuple[np.ndarray, set]:
+        """Optimises the graph; returns the poses before, and the indices (among the edges as
+        they were) of the edges it rejected, which are recorded by kind."""
+        before = np.stack(self.graph.poses)
+        edges = list(self.graph.edges)
+        result = self.graph.optimize()
+        for k in result.rejected:  # logged by the graph
+            record = {"frame": self._frames[max(edges[k].i, edges[k].j)],
+                      "keyframes": sorted([edges[k].i, edges[k].j]),
+                      "chi2": round(float(result.chi2[k]), 2)}
+            (self.rejected if edges[k].kind == "loop" else self.rejected_covisible).append(record)
+        return before, set(result.rejected)
+
+    def _corrections(self, before: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """Each keyframe's correction from `before` to the graph's poses (world to world), and
+        the largest shift (cm) and turn (degrees) among them."""
+        after = np.stack(self.graph.poses)
+        shift = np.linalg.norm(after[:, :3, 3] - before[:, :3, 3], axis=1)
+        turn = [rotation_deg(a, b) for a, b in zip(before, after)]
+        return after @ np.linalg.inv(before), 100 * float(shift.max()), float(max(turn))

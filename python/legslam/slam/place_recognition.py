@@ -84,11 +84,13 @@ def ratio_matches(a: np.ndarray, b: np.ndarray, ratio: float) -> np.ndarray:
     return np.array(pairs, dtype=int).reshape(-1, 2)
 
 
-def overlap(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, other: View) -> float:
+def overlap(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, other: View, stride: int = 1) -> float:
     """The share of the pixels with depth of a view at `pose` that land, lifted and moved into
     `other`'s camera (same intrinsics K), inside `other` where it has depth: what both views
-    see (occlusion not checked, so an upper bound)."""
-    v, u = np.nonzero(depth > 0)
+    see (occlusion not checked, so an upper bound). `stride`: every this-many-th pixel of every
+    this-many-th row counts (an estimate, `stride`^2 times cheaper)."""
+    v, u = np.nonzero(depth[::stride, ::stride] > 0)
+    v, u = v * stride, u * stride
     if not len(u):
         return 0.0
     p = lift(u, v, depth[v, u], K)

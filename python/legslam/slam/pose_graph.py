@@ -4,9 +4,10 @@ Nodes are keyframe poses, 4x4 camera-to-world; the fixed ones anchor the graph (
 keyframe, usually). An edge from node i to node j measures T_ij, the pose of j in i's frame
 (`relative(T_i, T_j)` when consistent), with a 6x6 information matrix over the residual twist
 log(inv(T_ij) inv(T_i) T_j): translation first (metres), then rotation (radians); see
-`information`. Odometry edges (consecutive keyframes) are trusted; loop edges get a robust
-(Cauchy) kernel, and a loop edge still inconsistent after optimisation (chi2 above the
-`outlier_chi2` option) is dropped, logged, and the graph solved again.
+`information`. Odometry edges (consecutive keyframes) are trusted; every other edge (a loop,
+or a covisibility edge between keyframes that see the same surfaces) gets a robust (Cauchy)
+kernel, and one still inconsistent after optimisation (chi2 above the `outlier_chi2` option)
+is dropped, logged, and the graph solved again.
 
     >>> graph = PoseGraph()
     >>> a = graph.add_node(T0, fixed=True)
@@ -65,7 +66,7 @@ def relative(pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
 @dataclass
 class Edge:
     """A relative-pose measurement: `measurement` is T_ij, the pose of node j in node i's frame;
-    `kind` is "odometry" or "loop"."""
+    `kind` is "odometry", "loop" or "covisibility" (the engine treats all but odometry alike)."""
     i: int
     j: int
     measurement: np.ndarray
@@ -105,13 +106,14 @@ class PoseGraph:
         removed from `edges` (kept in `rejected`); the result's per-edge values and indices
         refer to `edges` as they were before the call."""
         poses = np.stack(self.poses) if self.poses else np.zeros((0, 4, 4))
-        edges = [(e.i, e.j, e.measurement, e.information, e.kind) for e in self.edges]
+        edges = [(e.i, e.j, e.measurement, e.information, "odometry" if e.kind == "odometry" else "loop")
+                 for e in self.edges]
         result = _core.optimize_pose_graph(poses, edges, self.fixed, self.options)
         self.poses = list(result.poses)
         for k in result.rejected:
             e = self.edges[k]
-            log.warning("pose graph: loop edge %d (keyframes %d-%d) rejected as an outlier, "
-                        "chi2 %.1f", k, e.i, e.j, result.chi2[k])
+            log.warning("pose graph: %s edge %d (keyframes %d-%d) rejected as an outlier, "
+                        "chi2 %.1f", e.kind, k, e.i, e.j, result.chi2[k])
         dropped = set(result.rejected)
         self.rejected += [self.edges[k] for k in result.rejected]
         self.edges = [e for k, e in enumerate(self.edges) if k not in dropped]

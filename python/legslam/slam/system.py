@@ -1,9 +1,10 @@
 """The SLAM loop: per frame, track (`TrackingPolicy`; a lost frame is placed again by the
 `Relocaliser`), decide keyframes (`KeyframePolicy`), hand keyframes to the map
 (`InlineMapping` or `ThreadedMapping`) and their language features (`FeatureFeed`,
-asynchronous) as targets; keyframes' patch tokens become places (`PlaceIndex`) that close
-loops (`LoopClosure`: the map and the trajectory move with the corrected keyframes); at the
-end, the final mapping iterations.
+asynchronous) as targets; each keyframe is aligned with the older ones that see the same
+surfaces (`Covisibility`), and keyframes' patch tokens become places (`PlaceIndex`) that close
+loops, both edges of the keyframe pose graph (`LoopClosure`: the map and the trajectory move
+with the corrected keyframes); at the end, the final mapping iterations.
 
     slam = SLAM(SLAMConfig(), K, width, height)
     for frame in legslam.datasets.open(path):
@@ -29,6 +30,7 @@ from ..datasets.base import warn_unusual_camera
 from ..map import GaussianMap
 from ..tracking import Tracker
 from .config import SLAMConfig
+from .covisibility import Covisibility
 from .feature_feed import FeatureFeed
 from .keyframes import KeyframePolicy
 from .loop_closure import LoopClosure
@@ -72,6 +74,8 @@ class SLAM:
         warn_unusual_camera(self.K, self.width, self.height, "SLAM")
         self.timings: dict[str, list[float]] = {
             "preprocessing": [], "tracking": [], "relocalisation": [], "mapping": [], "frame": []}
+        #: Per keyframe: ms spent aligning it with covisible keyframes (within "mapping").
+        self.covisibility_ms: list[float] = []
         self.feature_timings: dict[str, list[float]] = {"extraction": [], "compression": []}
         # The encoder first: it checks feature_dim before the map is sized by it.
         self._features = self._feature_feed(encoder)
@@ -93,7 +97,12 @@ class SLAM:
         self.places = PlaceIndex(c, tracker, self.K_track) if places else None
         self.relocaliser = (Relocaliser(self.places, self._features.encoder, self.K_track)
                             if places and c.relocalise else None)
-        self.loops = LoopClosure(c, self.places) if places and c.loop_closure else None
+        self.covisibility = (Covisibility(c, Tracker(threads=1 if c.mapping_thread else None,
+                                                     **c.covisibility_tracker_options(*self.track_size)),
+                                          self.K_track) if c.covisibility_edges else None)
+        loops = places and c.loop_closure
+        self.loops = (LoopClosure(c, self.places if loops else None)
+                      if loops or self.covisibility is not None else None)
         # Keyframe views waiting for their patch tokens to become places; the keyframe the
         # next one is tracked after (the pose graph's odometry edge).
         self._unplaced: dict[int, KeyframeView] = {}
@@ -146,8 +155,12 @@ class SLAM:
                     tracked = self._relocalise(i, rgb, small, tracked)
             with self._timed("mapping"):
                 keyframe = self._map(i, rgb, depth, small, tracked)
-            self._record(tracked.pose, tracked.state)
-            self._correct()
+                # The pose graph's corrections (loops, covisibility) come before training:
+                # trained at a keyframe's old pose, the map would fit it there and then move.
+                self._record(tracked.pose, tracked.state)
+                self._correct()
+                if tracked.state != "lost":
+                    self._mapping.after_frame(self.trajectory.poses[i], keyframe)
         return StepResult(i, self.trajectory.poses[i], tracked.state, keyframe, tracked.reason)
 
     def skip(self) -> StepResult:
@@ -226,8 +239,8 @@ class SLAM:
         return Tracked(found.pose, "relocalised", tracked.coverage)
 
     def _map(self, i: int, rgb, depth, small: View, tracked: Tracked) -> bool:
-        """Adds a keyframe if the policy wants one and trains (or lets the thread train);
-        nothing from a lost frame. Returns whether the frame became a keyframe."""
+        """Adds a keyframe if the policy wants one (never from a lost frame). Returns whether
+        the frame became a keyframe."""
         if tracked.state == "lost":
             if self._features is not None:
                 self._features.collect()
@@ -247,16 +260,23 @@ class SLAM:
                 self._features.submit(kf_id, rgb)
         if self._features is not None:
             self._features.collect()
-        self._mapping.after_frame(tracked.pose, keyframe)
         self._last_tracked = View(tracked.pose, small.rgb, small.depth)
         return keyframe
 
     def _keyframe_made(self, kf_id: int, view: KeyframeView) -> None:
-        """A new keyframe: a node of the pose graph, and a place once its tokens come."""
+        """A new keyframe: a node of the pose graph with edges to the keyframes that see the same
+        surfaces, and a place once its tokens come."""
         if self.places is not None:
             self._unplaced[kf_id] = view
         if self.loops is not None:
             self.loops.add_keyframe(view.frame, view.pose, self._tracked_after)
+        if self.covisibility is not None:
+            t0 = time.perf_counter()
+            if self.covisibility.add(view.rgb, view.depth) != kf_id:
+                raise RuntimeError("covisibility views out of step with the keyframes")
+            found = self.covisibility.edges(kf_id, self.loops.poses, exclude=self._tracked_after)
+            self._will_correct(self.loops.add_covisible(found))
+            self.covisibility_ms.append(1e3 * (time.perf_counter() - t0))
         self._tracked_after = kf_id
 
     def _place_seen(self, kf_id: int, tokens: np.ndarray) -> None:
@@ -269,20 +289,23 @@ class SLAM:
         t0 = time.perf_counter()
         found = self.loops.detect(kf_id)
         if found is not None:
-            corrections = self.loops.close(kf_id, found, 1e3 * (time.perf_counter() - t0))
-            if corrections is not None:  # applied once the frame is recorded
-                self._corrections = (corrections if self._corrections is None
-                                     else corrections @ self._corrections)
+            self._will_correct(self.loops.close(kf_id, found, 1e3 * (time.perf_counter() - t0)))
+
+    def _will_correct(self, corrections: Optional[np.ndarray]) -> None:
+        """Keyframe corrections of the pose graph, applied once the frame is recorded."""
+        if corrections is not None:
+            self._corrections = (corrections if self._corrections is None
+                                 else corrections @ self._corrections)
 
     def _correct(self) -> None:
-        """Moves keyframes by the loop closures' corrections (the map's Gaussians with them),
+        """Moves keyframes by the pose graph's corrections (the map's Gaussians with them),
         and every frame and view with its keyframe."""
         if self._corrections is None:
             return
         corrections, self._corrections = self._corrections, None
         self._mapping.correct_keyframes(corrections)
         poses = np.stack(self.loops.poses)
-        for k in self.places.places:
+        for k in self.places.places if self.places is not None else ():
             self.places.set_pose(k, poses[k])
         self.trajectory.follow(poses)
         last = self._last_keyframe
@@ -310,9 +333,12 @@ class SLAM:
         out = {}
         if self.relocaliser is not None:
             out["relocalisations"] = [e.as_dict() for e in self.relocaliser.events]
-        if self.loops is not None:
+        if self.loops is not None and self.loops.places is not None:
             out["loop_closures"] = [e.as_dict() for e in self.loops.events]
             out["rejected_loops"] = list(self.loops.rejected)
+        if self.covisibility is not None:
+            out["covisibility_edges"] = self.loops.covisible
+            out["rejected_covisibility_edges"] = list(self.loops.rejected_covisible)
         if self.places is not None:
             out["place_memory_mb"] = round(self.places.nbytes / 2 ** 20, 2)
         return out
