@@ -3,8 +3,9 @@
 and the tracker's own frame-to-frame odometry on the same frames in the same process.
 
 Prints ATE RMSE (all frames, SE(3)-aligned, as `evo_ape -a`) and the median frame-to-frame
-relative pose error of SLAM and of the odometry, relocalisations and loops closed (time per
-closure), PSNR / SSIM / depth L1 of the
+relative pose error of SLAM and of the odometry, how well the frames agree with each other
+under the ground truth's poses and under SLAM's (see `view_agreement`), relocalisations, loops
+closed (time per closure) and covisibility edges, PSNR / SSIM / depth L1 of the
 final map rendered at the estimated pose of every 5th frame and of every keyframe, the number
 of Gaussians, peak memory, frames per second and the per-stage time table.
 
@@ -42,6 +43,35 @@ def odometry(seq) -> tuple[np.ndarray, float]:
         poses.append(odo.step(f.rgb, f.depth, f.K).pose)
         times.append(1e3 * (time.perf_counter() - t0))
     return np.stack(poses), float(np.median(times[1:]))
+
+
+def view_agreement(seq, trajectories: dict, every: int = 9, pairs: int = 400) -> dict:
+    """How well each trajectory (name: poses) makes frames agree with each other, needing no
+    ground truth: pairs of frames (every `every`-th, from the 3rd on, a seeded sample of at
+    most `pairs` whose views overlap on at least 30% under the first trajectory), each frame's
+    depth moved into the other by the poses. Per trajectory, the median over pairs of the
+    median depth disagreement (cm) and of the colour difference where they meet (8-bit
+    levels). A ground truth of its own, measured like this, says how far it can be trusted."""
+    from types import SimpleNamespace
+
+    from legslam.eval.consistency import depth_reprojection
+
+    frames = list(range(3, len(seq), every))
+    candidates = [(a, b) for n, a in enumerate(frames) for b in frames[n + 1:]]
+    order = np.random.default_rng(0).permutation(len(candidates))
+    first = next(iter(trajectories))
+    scores = {name: [] for name in trajectories}
+    for k in order[:pairs]:
+        a, b = (seq[i] for i in candidates[k])
+        views = {name: [SimpleNamespace(pose=poses[i], K=f.K, depth=f.depth, rgb=f.rgb)
+                        for i, f in zip(candidates[k], (a, b))] for name, poses in trajectories.items()}
+        if depth_reprojection(*views[first], 0.02)["overlap"] < 0.3:
+            continue
+        for name, (va, vb) in views.items():
+            r = depth_reprojection(va, vb, 0.02)
+            scores[name].append((r["median_cm"], r["colour_l1"]))
+    return {name: (len(v), float(np.nanmedian([d for d, _ in v])), float(np.median([c for _, c in v])))
+            for name, v in scores.items() if v}
 
 
 def median_rpe_cm(gt: np.ndarray, est: np.ndarray) -> float:
@@ -89,11 +119,18 @@ def main() -> int:
     print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {m['ate_rmse_cm']:.2f} cm |")
     print(f"| ATE RMSE, tracker frame-to-frame odometry | {100 * odo_ate:.2f} cm ({odo_ms:.1f} ms/frame median) |")
     print(f"| frame-to-frame RPE median, SLAM / odometry | {rpe_slam:.3f} / {rpe_odo:.3f} cm |")
+    agreement = view_agreement(seq, {"ground truth": gt, "SLAM": slam_poses})
+    for name, (n, depth_cm, colour) in agreement.items():
+        print(f"| frames' agreement under the {name} poses ({n} pairs): depth / colour (median) | "
+              f"{depth_cm:.2f} cm / {colour:.1f} levels |")
     after = ", ".join(f"{r['frame']}: {r['lost_frames']}" for r in relocs)
     print(f"| relocalisations (frame: lost frames before) | {len(relocs)} ({after}) |")
     loop_ms = [e["ms"] for e in loops]
     print(f"| loops closed / rejected, ms per closure (median) | {len(loops)} / "
           f"{len(m.get('rejected_loops', []))}, {np.median(loop_ms) if loop_ms else 0:.0f} ms |")
+    if "covisibility_edges" in m:
+        print(f"| covisibility edges kept / rejected | {m['covisibility_edges']} / "
+              f"{len(m['rejected_covisibility_edges'])} |")
     print(f"| places kept (keyframes' descriptors, keypoints, views) | {m.get('place_memory_mb', 0):.1f} MB |")
     for name, label in (("every_5", "every 5th frame"), ("at_keyframes", "keyframes")):
         v = m[name]
@@ -115,6 +152,8 @@ def main() -> int:
     Path(args.out, "bench.json").write_text(json.dumps(
         {"metrics": m, "timings": t, "odometry_ate_m": odo_ate, "odometry_ms": odo_ms,
          "rpe_median_cm": {"slam": rpe_slam, "odometry": rpe_odo},
+         "view_agreement": {k: {"pairs": n, "depth_cm": d, "colour_levels": c}
+                            for k, (n, d, c) in agreement.items()},
          "peak_mb": peak_mb}, indent=2))
     return 0
 
