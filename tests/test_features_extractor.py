@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 
@@ -92,3 +94,33 @@ def test_errors_reach_the_caller_and_the_worker_survives(tmp_path):
             ex.submit("again", _frames(1)[0])
     with pytest.raises(RuntimeError, match="closed"):
         ex.submit("late", _frames(1)[0])
+
+
+def test_exit_without_close_waits_for_the_running_job_and_drops_the_queued(tmp_path):
+    # onnxruntime aborts the process when its session is torn down under a running job, as a
+    # script that stops without closing (an error, a forgotten close) would make it.
+    log = tmp_path / "done.txt"
+    script = tmp_path / "leave.py"
+    script.write_text(f"""
+import threading, time
+import numpy as np
+from legslam.features import AsyncExtractor
+
+class Slow:
+    started = threading.Event()
+    def encode(self, rgb):
+        self.started.set()
+        time.sleep(0.5)
+        with open({str(log)!r}, "a") as f:
+            f.write(f"{{int(rgb[0, 0, 0])}}\\n")
+        return np.zeros((2, 2, 4), np.float32)
+
+enc = Slow()
+ex = AsyncExtractor(enc)
+for i in range(3):
+    ex.submit(i, np.full((4, 4, 3), i, np.uint8))
+assert enc.started.wait(5)
+""")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert log.read_text().split() == ["0"]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,8 @@ class FeatureResult:
 
 
 class AsyncExtractor:
-    """`AsyncExtractor(encoder, pca=None)`; use as a context manager or call `close()`.
+    """`AsyncExtractor(encoder, pca=None)`; use as a context manager or call `close()` (at
+    interpreter exit without it, the running job finishes and the queued ones are dropped).
 
     `submit(key, rgb)` returns at once; `poll()` hands over every finished result (in
     submission order); `get(key)` waits for one. A failed job re-raises its error there.
@@ -39,8 +41,13 @@ class AsyncExtractor:
         self._pending: set = set()
         self._cond = threading.Condition()
         self._closed = False
+        self._abandoned = threading.Event()
         self._worker = threading.Thread(target=self._run, name="legslam-features", daemon=True)
         self._worker.start()
+        # At interpreter exit without close(), onnxruntime aborts the process if its session is
+        # torn down under a running job: then the queued jobs are dropped and the running one
+        # waited for.
+        weakref.finalize(self, _abandon, self._abandoned, self._jobs, self._worker)
 
     def submit(self, key, rgb: np.ndarray) -> None:
         if self._closed:
@@ -89,7 +96,7 @@ class AsyncExtractor:
     def _run(self) -> None:
         while True:
             job = self._jobs.get()
-            if job is None:
+            if job is None or self._abandoned.is_set():
                 return
             key, rgb = job
             try:
@@ -122,3 +129,10 @@ class AsyncExtractor:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _abandon(abandoned: threading.Event, jobs: queue.Queue, worker: threading.Thread) -> None:
+    """Stops an extractor's worker after the job it is running, dropping the queued ones."""
+    abandoned.set()
+    jobs.put(None)
+    worker.join()
