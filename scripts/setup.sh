@@ -9,7 +9,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet maturin numpy onnxruntime opencv-python-headless \
-  pytest scikit-image onnx evo
+  threadpoolctl pytest scikit-image onnx evo
 # The readers of the user's own recordings (extras bags, phone, realsense), so that their tests
 # run: ROS bags (rosbags, pure Python), Record3D's LZFSE depth (lzfse) and Intel's RealSense SDK
 # (pyrealsense2, ~13 MB: the tests record with it from a software device and play it back; a
