@@ -94,3 +94,28 @@ def test_a_file_that_is_not_a_saved_pca_is_named(tmp_path):
     np.save(tmp_path / "one.npy", np.zeros(3))
     with pytest.raises(ValueError, match="one array, not an .npz archive"):
         PCA.load(tmp_path / "one.npy")
+
+
+def test_fitting_runs_blas_on_one_thread(monkeypatch):
+    # Beside the mapping and encoder threads, OpenBLAS's own threads stalled the fit for
+    # seconds; the limit must hold while the scatter and eigendecomposition run.
+    from threadpoolctl import threadpool_info
+
+    import legslam.features.pca as pca_module
+
+    def blas_threads():
+        return {p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}
+
+    seen = []
+    eigh = np.linalg.eigh
+
+    def watched(a):
+        seen.append(blas_threads())
+        return eigh(a)
+
+    monkeypatch.setattr(pca_module.np.linalg, "eigh", watched)
+    before = blas_threads()
+    x = np.random.default_rng(0).normal(size=(300, 40)).astype(np.float32)
+    PCA(8).fit(x).components
+    assert seen == [{1}]
+    assert blas_threads() == before  # and is lifted afterwards
