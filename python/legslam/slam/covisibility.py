@@ -25,7 +25,7 @@ from typing import Optional
 import numpy as np
 
 from ..tracking import Tracker
-from .place_recognition import overlap
+from .place_recognition import overlap, shared_inliers
 from .pose_graph import relative
 from .trajectory import View
 
@@ -91,8 +91,7 @@ class Covisibility:
             res = self.tracker.track(old_rgb, old_depth, self.K, init_pose=poses[old], reference=reference)
             if res.lost:
                 continue
-            seen = overlap(old_depth, self.K, res.pose, View(pose, rgb, depth), OVERLAP_STRIDE)
-            agree = res.inlier_ratio / max(seen, 1e-9)
+            seen, agree = shared_inliers(res, old_depth, self.K, View(pose, rgb, depth), OVERLAP_STRIDE)
             if agree < self.config.place_min_inlier_ratio:
                 continue
             found.append(Covisible(new, old, relative(pose, res.pose), float(agree), seen))

@@ -32,7 +32,7 @@ from ..tracking import Tracker
 from .trajectory import View
 
 __all__ = ["Place", "PlaceIndex", "Recognised", "global_descriptor", "keypoints", "overlap",
-           "ratio_matches", "ransac_rigid", "rigid_fits"]
+           "shared_inliers", "ratio_matches", "ransac_rigid", "rigid_fits"]
 
 
 def global_descriptor(tokens: np.ndarray) -> np.ndarray:
@@ -104,6 +104,15 @@ def overlap(depth: np.ndarray, K: np.ndarray, pose: np.ndarray, other: View, str
     inside = (x >= 0) & (x < W) & (y >= 0) & (y < H)
     seen = other.depth[y[inside].astype(int), x[inside].astype(int)] > 0
     return float(seen.sum()) / len(u)
+
+
+def shared_inliers(res, depth: np.ndarray, K: np.ndarray, other: View, stride: int = 1) -> tuple[float, float]:
+    """For a view (its `depth`) tracked against `other` to `res` (a TrackResult): the share of
+    its pixels `other` sees (`overlap`, at `res.pose`), and the tracker's inliers as a share of
+    those. A right alignment of views that half overlap has only half its pixels as inliers,
+    but most of those both see."""
+    seen = overlap(depth, K, res.pose, other, stride)
+    return seen, res.inlier_ratio / max(seen, 1e-9)
 
 
 def _rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -249,8 +258,7 @@ class PlaceIndex:
                                  init_pose=place.view.pose @ T, reference=ref)
         if res.lost:
             return None
-        seen = overlap(query.view.depth, self.K, res.pose, place.view)
-        agree = res.inlier_ratio / max(seen, 1e-9)
+        seen, agree = shared_inliers(res, query.view.depth, self.K, place.view)
         if seen < c.place_min_overlap or agree < c.place_min_inlier_ratio:
             return None
         return Recognised(res.pose, place.keyframe, similarity, int(inliers.sum()), len(pairs),
