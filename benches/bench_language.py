@@ -33,6 +33,7 @@ def main() -> int:
     from legslam.datasets import open as open_dataset
     from legslam.eval import read_tum
     from legslam.features import PCA, Encoder
+    from legslam.slam import SLAMConfig
     from legslam.map import GaussianMap
     from legslam.query import heatmap, query_from_pixel
 
@@ -44,7 +45,7 @@ def main() -> int:
     m = GaussianMap.load(run / "map.ply")
     pca = PCA.load(run / "pca.npz")
     cfg = json.loads((run / "config.json").read_text())
-    enc = Encoder(cfg["encoder"], input_size=cfg["encoder_size"])
+    enc = Encoder(SLAMConfig.from_dict(cfg).encoder_model, input_size=cfg["encoder_size"])
     keyframes = set(json.loads((run / "metrics.json").read_text()).get("keyframe_frames", []))
     rng = np.random.default_rng(0)
     n = len(poses)

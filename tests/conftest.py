@@ -44,9 +44,9 @@ def language_run(tmp_path_factory):
     from legslam.slam import SLAMConfig
 
     try:
-        resolve("default")
+        resolve(SLAMConfig().encoder_model)
     except FileNotFoundError as e:
-        pytest.skip(f"default encoder not cached ({e})")
+        pytest.skip(f"the SLAM's encoder is not cached ({e})")
     scene = synthetic.generate(tmp_path_factory.mktemp("scene"), n_frames=20, width=160, height=120, seed=5)
     out = tmp_path_factory.mktemp("run")
     result = run(open_dataset(scene), out, SLAMConfig(pca_keyframes=2, final_iters=60))

@@ -30,14 +30,17 @@ def rotation(axis, degrees) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def encoder():
+    """The encoder a SLAM run uses by default (places are recognised from its tokens)."""
     from legslam.features import Encoder
     from legslam.models import resolve
+    from legslam.slam import SLAMConfig
 
+    model = SLAMConfig().encoder_model
     try:
-        resolve("default")
+        resolve(model)
     except FileNotFoundError as e:
-        pytest.skip(f"default encoder not cached ({e})")
-    return Encoder("default", input_size=224, threads=1)
+        pytest.skip(f"the SLAM's encoder is not cached ({e})")
+    return Encoder(model, input_size=224, threads=1)
 
 
 @pytest.fixture(scope="module")
@@ -360,6 +363,23 @@ def test_without_the_encoder_no_features_runs_without_place_recognition(scene, t
     assert "covisibility_edges" in events  # the pose graph needs no encoder
     with pytest.raises(FileNotFoundError):  # language features still need it
         SLAM(SLAMConfig(final_iters=0), scene[0].K, W, H)
+
+
+def test_each_mode_loads_its_encoder(scene, tmp_path, monkeypatch):
+    # "auto": int8 where the encoder competes with a mapping thread for the cores, the full
+    # precision one otherwise; a model named in the config is loaded whatever the mode. An
+    # empty cache makes the loader name the file it looked for.
+    monkeypatch.setenv("LEGSLAM_CACHE", str(tmp_path))
+    from legslam.models import DEFAULT_MODEL, INT8_MODEL
+
+    for config, wanted in ((SLAMConfig(final_iters=0), DEFAULT_MODEL),
+                           (SLAMConfig(final_iters=0, mapping_thread=True), INT8_MODEL),
+                           (SLAMConfig(final_iters=0, encoder="dinov2_vits14_int8"), INT8_MODEL),
+                           (SLAMConfig(final_iters=0, mapping_thread=True, encoder="default"),
+                            DEFAULT_MODEL)):
+        with pytest.raises(FileNotFoundError) as e:
+            SLAM(config, scene[0].K, W, H)
+        assert f"{wanted} is missing" in str(e.value), (config.encoder, config.mapping_thread, e.value)
 
 
 # --- covisibility edges -----------------------------------------------------------------------

@@ -26,11 +26,11 @@ class FeatureFeed:
         c = config
         self.config, self.sink, self.timings, self.tokens = c, sink, timings, tokens
         if encoder is None:
-            encoder = Encoder(c.encoder, input_size=c.encoder_size, threads=c.encoder_threads)
+            encoder = Encoder(c.encoder_model, input_size=c.encoder_size, threads=c.encoder_threads)
         dim = getattr(encoder, "dim", None)
         if dim is not None and c.feature_dim > dim:
             raise ValueError(f"feature_dim is {c.feature_dim}, more than the {dim} dimensions the "
-                             f"encoder ({getattr(encoder, 'path', c.encoder)}) gives: at most {dim}")
+                             f"encoder ({getattr(encoder, 'path', c.encoder_model)}) gives: at most {dim}")
         self.encoder = encoder
         self.extractor = AsyncExtractor(encoder)
         self.pca = PCA.load(c.pca_path) if c.pca_path and sink is not None else None
