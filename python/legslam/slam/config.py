@@ -197,8 +197,9 @@ class SLAMConfig:
     #: DINOv2 ViT-S/14 with a mapping thread, its full-precision original ("default")
     #: without. In real time the encoder shares the two cores with tracking and mapping: the
     #: int8 one took 19.5 instead of 28 s of a core on 7-Scenes, and runs went 8-20% more
-    #: frames a second (7-Scenes, two Replica renders) with the same query scores. Synchronous runs gain no speed from it, and their maps moved by -0.58 to
-    #: +0.30 dB (mean -0.2 over four runs, where the mapper's seed alone moves one 0.5 dB).
+    #: frames a second (7-Scenes, two Replica renders) with the same query scores.
+    #: Synchronous runs gain no speed from it, and their maps moved by -0.58 to +0.30 dB (mean
+    #: -0.2 over four runs, where the mapper's seed alone moves one 0.5 dB).
     features: bool = True
     encoder: str = "auto"
     encoder_size: int = 224

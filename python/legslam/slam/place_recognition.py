@@ -32,7 +32,7 @@ from ..tracking import Tracker
 from .trajectory import View
 
 __all__ = ["Place", "PlaceIndex", "Recognised", "global_descriptor", "keypoints", "overlap",
-           "shared_inliers", "ratio_matches", "ransac_rigid", "rigid_fits"]
+           "ratio_matches", "ransac_rigid", "rigid_fits", "shared_inliers"]
 
 
 def global_descriptor(tokens: np.ndarray) -> np.ndarray:
