@@ -247,7 +247,8 @@ def test_the_slams_tracker_places_a_moved_real_frame_within_a_millimetre():
         rgb = cv2.resize(rgb, (320, 240), interpolation=cv2.INTER_AREA)
         depth = cv2.resize(depth, (320, 240), interpolation=cv2.INTER_NEAREST)
         K = scale_K(K, 0.5, 0.5)
-        for xi in ([0.015, -0.01, 0.008, 0.012, -0.02, 0.008], [-0.01, 0.02, -0.01, -0.02, 0.01, 0.015]):
+        for xi in ([0.015, -0.01, 0.008, 0.012, -0.02, 0.008],
+                   [-0.01, 0.02, -0.01, -0.02, 0.01, 0.015]):
             T_ref_new = exp_se3(xi)
             rgb_n, depth_n = warp(rgb, depth, K, np.linalg.inv(T_ref_new))
             res = tracker.track(rgb_n, depth_n, K, rgb, depth, np.eye(4), init_pose=np.eye(4))

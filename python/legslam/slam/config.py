@@ -36,11 +36,12 @@ DERIVED = {
 #: the finest level instead of 4. Frame to frame at 320 wide, the finest level's iterations
 #: were most of the tracker's time, and two placed frames as well as four (median error
 #: against the ground truth 0.256 / 0.257 cm on 7-Scenes, 0.022 / 0.022 cm on a Replica
-#: render, 0.052 / 0.052 cm with Kinect-like noise) in 12-17 instead of 20-24 ms; one was
-#: as good frame to frame but placed a frame moved 2 cm 3-4 times worse. Real time on
-#: 7-Scenes: 11.4-11.8 instead of 9.1-10.2 fps, its map 0.2 dB behind (a shorter run maps
-#: less); synchronous: ATE 4.17 / 4.06 cm and 24.85 / 24.81 dB, Replica 0.46 / 0.45 cm and
-#: 33.75 / 34.12 dB, Kinect-like noise 0.53 / 0.53 cm and 34.07 / 33.27 dB.
+#: render, 0.052 / 0.052 cm with Kinect-like noise) in 12-17 instead of 20-24 ms; one was as
+#: good frame to frame, but placed a real frame seen from 2 cm away 1.3-2.9 mm off (two and
+#: four: 0.15-0.87 mm; tests/test_tracking.py). Real time on 7-Scenes: 11.4-11.8 instead of
+#: 9.1-10.2 fps, its map 0.2 dB behind (a shorter run maps less); synchronous: ATE 4.17 / 4.06
+#: cm and 24.85 / 24.81 dB, Replica 0.46 / 0.45 cm and 33.75 / 34.12 dB, Kinect-like noise
+#: 0.53 / 0.53 cm and 34.07 / 33.27 dB.
 SLAM_DEFAULTS = {"mapper": {}, "tracker": {"finest_level": 0, "levels": None,
                                            "iterations": [2, 8, 10]}}
 
