@@ -173,16 +173,12 @@ def test_a_file_is_replaced_whole_or_not_at_all(tmp_path):
 # 5. feature_dim --------------------------------------------------------------------------
 
 def test_feature_dim_beyond_the_encoder_is_refused_up_front(scene, tmp_path, capsys):
-    from legslam.models import resolve
-    from legslam.slam import SLAMConfig
+    from conftest import slam_encoder
 
     (tmp_path / "huge.toml").write_text("feature_dim = 1000000000\n")
     assert main(["run", str(scene), "--out", str(tmp_path / "a"), "--config", str(tmp_path / "huge.toml")]) == 2
     assert "feature_dim must be in [1, 4096], got 1000000000" in capsys.readouterr().err
-    try:
-        resolve(SLAMConfig().encoder_model)
-    except FileNotFoundError as e:
-        pytest.skip(f"the SLAM's encoder is not cached ({e})")
+    slam_encoder()
     (tmp_path / "big.toml").write_text("feature_dim = 500\n")
     t0 = time.perf_counter()
     assert main(["run", str(scene), "--out", str(tmp_path / "b"), "--config", str(tmp_path / "big.toml")]) == 2

@@ -31,16 +31,10 @@ def rotation(axis, degrees) -> np.ndarray:
 @pytest.fixture(scope="module")
 def encoder():
     """The encoder a SLAM run uses by default (places are recognised from its tokens)."""
+    from conftest import slam_encoder
     from legslam.features import Encoder
-    from legslam.models import resolve
-    from legslam.slam import SLAMConfig
 
-    model = SLAMConfig().encoder_model
-    try:
-        resolve(model)
-    except FileNotFoundError as e:
-        pytest.skip(f"the SLAM's encoder is not cached ({e})")
-    return Encoder(model, input_size=224, threads=1)
+    return Encoder(slam_encoder(), input_size=224, threads=1)
 
 
 @pytest.fixture(scope="module")

