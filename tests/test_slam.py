@@ -240,8 +240,9 @@ def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scen
 
     def mapped(batch, progress=None):
         monkeypatch.setattr(slam_module, "FINAL_BATCH", batch)
-        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, map_iters_frame=0, final_iters=60),
-                    seq[0].K, 160, 120)
+        # At a constant learning rate (annealed, each batch has its own).
+        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, map_iters_frame=0, final_iters=60,
+                               final_lr_factor=1.0), seq[0].K, 160, 120)
         for i in range(4):
             slam.step(seq[i].rgb, seq[i].depth)
         slam.finish(progress=progress)
@@ -258,6 +259,47 @@ def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scen
     run(seq, tmp_path, SLAMConfig(features=False, final_iters=30, map_iters_keyframe=2),
         progress=Progress(len(seq)))
     assert "final mapping iterations 30/30" in capsys.readouterr().err
+
+
+def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
+    import legslam.slam.system as slam_module
+
+    seq = open_dataset(scene)
+    monkeypatch.setattr(slam_module, "FINAL_BATCH", 25)
+
+    class Recording:
+        """The mapper, with the learning-rate scale of each final batch noted."""
+        def __init__(self, mapper):
+            self.mapper, self.scales = mapper, []
+
+        def train(self, iterations, window=None, lr_scale=1.0):
+            self.scales.append(lr_scale)
+            return self.mapper.train(iterations, window=window, lr_scale=lr_scale)
+
+        def __getattr__(self, name):
+            return getattr(self.mapper, name)
+
+    def scales(frames=3, **options):
+        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, map_iters_frame=0, **options),
+                    seq[0].K, 160, 120)
+        for i in range(frames):
+            slam.step(seq[i].rgb, seq[i].depth)
+        slam.mapper = Recording(slam.mapper)
+        slam.finish()
+        return slam.mapper.scales
+
+    assert scales(final_iters=100, final_lr_factor=1.0) == [1.0] * 4
+    # Log-linear in the iterations done, per batch: 1, f^(1/4), f^(1/2), f^(3/4).
+    f = SLAMConfig().final_lr_factor
+    assert f < 1
+    np.testing.assert_allclose(scales(final_iters=100), [f ** (k / 4) for k in range(4)], rtol=1e-12)
+    # Real time, by the time spent: from 1 down, never below the factor.
+    monkeypatch.setattr(slam_module, "FINAL_BATCH", 2)
+    timed = scales(12, final_iters=0, final_time=0.5, mapping_thread=True, final_lr_factor=0.1)
+    assert len(timed) >= 2 and timed[0] > 0.95, timed
+    assert all(0.1 <= b < a for a, b in zip(timed, timed[1:])), timed
+    with pytest.raises(ValueError, match="final_lr_factor"):
+        SLAMConfig(final_lr_factor=0.0)
 
 
 def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):

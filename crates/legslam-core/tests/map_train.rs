@@ -351,3 +351,48 @@ fn keyframes_keep_only_the_levels_mapping_uses() {
     full.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
     assert_eq!(full.keyframes[0].levels[0].depth.len(), 64 * 48);
 }
+
+/// A learning-rate scale s makes Adam's first step (lr times the gradient's sign) s times as
+/// long in every group, and scale 1 gives back exactly the configured rates.
+#[test]
+fn a_learning_rate_scale_scales_every_groups_step() {
+    let trained = |scales: &[Real]| {
+        let cfg = MapperConfig {
+            finest_level: 0,
+            grow_level: 1,
+            ..Default::default()
+        };
+        let mut m = Mapper::new(cfg).unwrap();
+        let (rgb, depth, k) = wall(32, 24);
+        m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
+        let before = m.map.clone();
+        for &s in scales {
+            m.set_lr_scale(s).unwrap();
+        }
+        m.train(1).unwrap();
+        (before, m)
+    };
+    let steps = |(before, m): &(legslam_core::map::GaussianMap, Mapper)| {
+        let sum = |a: &[Real], b: &[Real]| -> f64 {
+            a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs())).sum()
+        };
+        [
+            sum(&m.map.log_scales, &before.log_scales),
+            sum(&m.map.opacity_logits, &before.opacity_logits),
+            sum(&m.map.sh, &before.sh),
+        ]
+    };
+    let full = steps(&trained(&[]));
+    let quarter = steps(&trained(&[0.25]));
+    for (f, q) in full.iter().zip(quarter) {
+        assert!(*f > 0.0 && (q / f - 0.25).abs() < 0.01, "{q} against {f}");
+    }
+    let (_, a) = trained(&[]);
+    let (_, b) = trained(&[0.25, 1.0]);
+    assert_eq!(a.map.sh, b.map.sh);
+    assert_eq!(a.map.means, b.map.means);
+    let mut m = Mapper::new(MapperConfig::default()).unwrap();
+    for bad in [0.0, -1.0, Real::NAN, Real::INFINITY] {
+        assert!(m.set_lr_scale(bad).is_err(), "{bad}");
+    }
+}

@@ -171,17 +171,21 @@ impl PyMapper {
     }
 
     /// Runs mapping iterations on keyframes drawn from the most recent `window` (default: the
-    /// configured window).
-    #[pyo3(signature = (iterations, window=None))]
+    /// configured window), with the Gaussians' learning rates `lr_scale` times the configured.
+    #[pyo3(signature = (iterations, window=None, lr_scale=1.0))]
     fn train(
         &mut self,
         py: Python<'_>,
         iterations: usize,
         window: Option<usize>,
+        lr_scale: f64,
     ) -> PyResult<PyTrainReport> {
         let inner = &mut self.inner;
         let window = window.unwrap_or(inner.config.window);
-        let r = pool::call(&self.pool, py, || inner.train_window(iterations, window))?;
+        let r = pool::call(&self.pool, py, || {
+            inner.set_lr_scale(lr_scale as Real)?;
+            inner.train_window(iterations, window)
+        })?;
         Ok(r.into())
     }
 

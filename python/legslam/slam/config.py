@@ -174,6 +174,13 @@ class SLAMConfig:
     #: the run, whatever its length: on 7-Scenes 300 final iterations instead of 100 gave
     #: +0.8 dB at 15.9 instead of 19.8 fps, but a fixed 300 halved a 400-frame run's rate.
     final_time: float = 0.5
+    #: The final iterations' learning rates fall log-linearly from the mapper's to this many
+    #: times them (1: constant), as the iterations (or, in real time, the time) run out. At a
+    #: constant rate Adam keeps moving every Gaussian by about the rate each step; annealed,
+    #: the map settles. Synchronous, 0.1 against 1: 7-Scenes 25.61 against 24.85 dB every
+    #: 5th frame, a 400-frame Replica render 35.63 against 33.75 dB (ATE unchanged). Real
+    #: time, whose map is short of iterations, gained nothing measurable (within +-0.2 dB).
+    final_lr_factor: float = 0.1
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
     #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
     #: time, on a thread pool of its own). Low overlap then makes a keyframe only once the
@@ -383,7 +390,7 @@ _RANGES = {
     "keyframe_translation": (0.0, _INF), "keyframe_rotation": (0.0, _INF),
     "keyframe_overlap": (0.0, 1.0), "keyframe_max_gap": (1, _INF),
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
-    "final_time": (0.0, _INF),
+    "final_time": (0.0, _INF), "final_lr_factor": (1e-6, 1.0),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (0, _INF),
     "jump_residual_ratio": (1.0, _INF),

@@ -393,7 +393,12 @@ class SLAM:
         while done < total or time.perf_counter() - start < budget:
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
             n = min(FINAL_BATCH, total - done) if done < total else FINAL_BATCH
-            self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes))
+            # How far along: the loop ends once both the count and the time are spent.
+            parts = ([done / total] if total else []) + \
+                ([(time.perf_counter() - start) / budget] if open_ended else [])
+            scale = self.config.final_lr_factor ** min(min(parts, default=1.0), 1.0)
+            self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes,
+                                                       lr_scale=scale))
             done += n
             if progress is not None:
                 progress(done, None if open_ended else total)

@@ -341,6 +341,16 @@ impl Mapper {
         self.adam.config.scene_extent
     }
 
+    /// Scales the Gaussians' learning rates (every group) to `scale` times the configured
+    /// ones, until set again: a refinement at the end of a run anneals them.
+    pub fn set_lr_scale(&mut self, scale: Real) -> Result<(), String> {
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(format!("the learning-rate scale must be > 0, got {scale}"));
+        }
+        self.adam.config.lr = self.config.adam.lr.map(|lr| lr * scale);
+        Ok(())
+    }
+
     /// The next keyframe to train on: a shuffled pass over the most recent `window`.
     /// With probability `revisit`, a keyframe older than the window instead, drawn uniformly.
     fn next_keyframe(&mut self, window: usize) -> usize {
