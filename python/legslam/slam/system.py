@@ -393,10 +393,11 @@ class SLAM:
         while done < total or time.perf_counter() - start < budget:
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
             n = min(FINAL_BATCH, total - done) if done < total else FINAL_BATCH
-            # How far along: the loop ends once both the count and the time are spent.
+            # How far along (below 1 inside the loop, which ends once both the count and the
+            # time are spent).
             parts = ([done / total] if total else []) + \
                 ([(time.perf_counter() - start) / budget] if open_ended else [])
-            scale = self.config.final_lr_factor ** min(min(parts, default=1.0), 1.0)
+            scale = self.config.final_lr_factor ** min(parts)
             self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes,
                                                        lr_scale=scale))
             done += n
