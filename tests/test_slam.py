@@ -241,8 +241,8 @@ def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scen
     def mapped(batch, progress=None):
         monkeypatch.setattr(slam_module, "FINAL_BATCH", batch)
         # At a constant learning rate (annealed, each batch has its own).
-        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, map_iters_frame=0, final_iters=60,
-                               final_lr_factor=1.0), seq[0].K, 160, 120)
+        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, final_iters=60,
+                               final_iters_per_frame=0.0, final_lr_factor=1.0), seq[0].K, 160, 120)
         for i in range(4):
             slam.step(seq[i].rgb, seq[i].depth)
         slam.finish(progress=progress)
@@ -256,9 +256,24 @@ def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scen
     a, b = batched.render(batched.poses[2]), whole.render(whole.poses[2])
     np.testing.assert_allclose(a["color"], b["color"], atol=1e-5)  # the same iterations, batched
     capsys.readouterr()
-    run(seq, tmp_path, SLAMConfig(features=False, final_iters=30, map_iters_keyframe=2),
+    run(seq, tmp_path, SLAMConfig(features=False, final_iters=30, final_iters_per_frame=0.0,
+                                          map_iters_keyframe=2),
         progress=Progress(len(seq)))
     assert "final mapping iterations 30/30" in capsys.readouterr().err
+
+
+class RecordingMapper:
+    """A mapper that notes the iterations and learning-rate scale of each `train` call."""
+    def __init__(self, mapper):
+        self.mapper, self.iterations, self.scales = mapper, [], []
+
+    def train(self, iterations, window=None, lr_scale=1.0):
+        self.iterations.append(iterations)
+        self.scales.append(lr_scale)
+        return self.mapper.train(iterations, window=window, lr_scale=lr_scale)
+
+    def __getattr__(self, name):
+        return getattr(self.mapper, name)
 
 
 def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
@@ -267,24 +282,12 @@ def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
     seq = open_dataset(scene)
     monkeypatch.setattr(slam_module, "FINAL_BATCH", 25)
 
-    class Recording:
-        """The mapper, with the learning-rate scale of each final batch noted."""
-        def __init__(self, mapper):
-            self.mapper, self.scales = mapper, []
-
-        def train(self, iterations, window=None, lr_scale=1.0):
-            self.scales.append(lr_scale)
-            return self.mapper.train(iterations, window=window, lr_scale=lr_scale)
-
-        def __getattr__(self, name):
-            return getattr(self.mapper, name)
-
     def scales(frames=3, **options):
-        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, map_iters_frame=0, **options),
-                    seq[0].K, 160, 120)
+        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, final_iters_per_frame=0.0,
+                               **options), seq[0].K, 160, 120)
         for i in range(frames):
             slam.step(seq[i].rgb, seq[i].depth)
-        slam.mapper = Recording(slam.mapper)
+        slam.mapper = RecordingMapper(slam.mapper)
         slam.finish()
         return slam.mapper.scales
 
@@ -300,6 +303,35 @@ def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
     assert all(0.1 <= b < a for a, b in zip(timed, timed[1:])), timed
     with pytest.raises(ValueError, match="final_lr_factor"):
         SLAMConfig(final_lr_factor=0.0)
+
+
+def test_synchronous_runs_spend_each_frames_iterations_at_the_end(scene):
+    seq = open_dataset(scene)
+
+    def final_iterations(frames, **options):
+        slam = SLAM(SLAMConfig(features=False, map_iters_keyframe=2, **options), seq[0].K, 160, 120)
+        for i in range(frames):
+            slam.step(seq[i].rgb, seq[i].depth)
+        slam.mapper = RecordingMapper(slam.mapper)
+        slam.finish()
+        return sum(slam.mapper.iterations)
+
+    assert final_iterations(3, final_iters=10, final_iters_per_frame=2.0) == 16
+    assert final_iterations(5, final_iters=10, final_iters_per_frame=2.0) == 20
+    assert final_iterations(5, final_iters=10, final_iters_per_frame=0.0) == 10
+    # Real time spends a share of the time instead (here none).
+    assert final_iterations(5, final_iters=10, final_iters_per_frame=2.0, mapping_thread=True,
+                            final_time=0.0) == 10
+    # A run cut short trains nothing.
+    slam = SLAM(SLAMConfig(features=False, final_iters_per_frame=2.0), seq[0].K, 160, 120)
+    slam.step(seq[0].rgb, seq[0].depth)
+    slam.mapper = RecordingMapper(slam.mapper)
+    slam.finish(train=False)
+    assert slam.mapper.iterations == []
+    default = SLAMConfig()
+    assert default.map_iters_frame == 0 and default.final_iters_per_frame > 0
+    with pytest.raises(ValueError, match="final_iters_per_frame"):
+        SLAMConfig(final_iters_per_frame=-1.0)
 
 
 def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
@@ -333,7 +365,8 @@ def test_real_time_trains_on_after_the_frames_for_its_share_of_the_run(scene):
         return calls, before, after, start, time.perf_counter()
 
     assert finished(mapping_thread=True, final_time=0.0)[0] == []
-    assert finished(mapping_thread=False, final_time=0.5)[0] == []  # synchronous: final_iters only
+    # Synchronous: final_iters and those per frame only.
+    assert finished(mapping_thread=False, final_time=0.5, final_iters_per_frame=0.0)[0] == []
     calls, before, after, start, end = finished(mapping_thread=True, final_time=0.5)
     # Batches of 25 while open-ended, then the count once.
     assert len(calls) >= 2 and all(total is None for _, total, _ in calls[:-1]), calls

@@ -48,7 +48,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "as long as the frames took (config: mapping_thread, final_time)")
     p.add_argument("--final-iters", type=int, default=None, metavar="N",
                    help="mapping iterations over all keyframes once the frames have ended "
-                        "(default 100; more give a sharper map: config final_iters)")
+                        "(default 100, and synchronous runs 0.4 more per frame; more give a "
+                        "sharper map: config final_iters, final_iters_per_frame)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--viewer", choices=["rerun"], default=None,
                    help="live view: frames, poses, trajectory, Gaussian centres, renders and "

@@ -152,13 +152,10 @@ class SLAMConfig:
     keyframe_rotation: float = 10.0
     keyframe_overlap: float = 0.9
     keyframe_max_gap: int = 15
-    #: Mapping iterations after a new keyframe, and after every other tracked frame. One a
-    #: frame instead of two, with the final iterations annealed (`final_lr_factor`): 7-Scenes
-    #: 25.23 against 25.61 dB every 5th frame (ATE 3.97 against 4.17 cm) in 24% less mapping
-    #: time, Replica render 35.48 against 35.63 dB, with Kinect-like noise 34.82 against 35.09
-    #: dB, the built-in scene 32.06 against 32.32 dB at 2.0 against 1.8 fps.
+    #: Mapping iterations after a new keyframe, and after every other tracked frame (none:
+    #: synchronous runs spend them at the end instead, `final_iters_per_frame`).
     map_iters_keyframe: int = 15
-    map_iters_frame: int = 1
+    map_iters_frame: int = 0
     #: The map trains at the coarsest pyramid level at least this wide (or full resolution).
     map_width: int = 320
     #: New Gaussians are seeded on a grid about this many columns wide (every pixel of a
@@ -172,6 +169,14 @@ class SLAMConfig:
     sh_degree: int = 3
     #: Mapping iterations once the sequence has ended, on keyframes drawn from all of them.
     final_iters: int = 100
+    #: Synchronous runs: this many final iterations more per frame tracked. An iteration
+    #: after the sequence is worth more than one after a frame: it draws from every keyframe
+    #: and its learning rate anneals (`final_lr_factor`). 0.4 a frame at the end instead of
+    #: one after each (`map_iters_frame` 1): 7-Scenes 3.49 against 2.80 fps, 25.14 against
+    #: 25.23 dB every 5th frame (ATE 3.95 / 3.97 cm); 400-frame Replica render 35.81 against
+    #: 35.48 dB, with Kinect-like noise 35.03 against 34.82 dB (those two with 0.5 a frame);
+    #: the built-in scene 2.3-2.4 against 1.9 fps, 31.87 against 32.06 dB.
+    final_iters_per_frame: float = 0.4
     #: With `mapping_thread`: the final iterations go on past `final_iters` while they have
     #: taken less than this share of the time the frames took (0: `final_iters` only). The
     #: map of a real-time run is short of iterations, and this spends on it a set share of
@@ -395,6 +400,7 @@ _RANGES = {
     "keyframe_translation": (0.0, _INF), "keyframe_rotation": (0.0, _INF),
     "keyframe_overlap": (0.0, 1.0), "keyframe_max_gap": (1, _INF),
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
+    "final_iters_per_frame": (0.0, _INF),
     "final_time": (0.0, _INF), "final_lr_factor": (1e-6, 1.0),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (0, _INF),

@@ -371,7 +371,9 @@ class SLAM:
 
     def finish(self, train: bool = True, progress=None) -> None:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
-        mapping iterations (unless `train` is false: a run cut short keeps the map it has), in
+        mapping iterations (unless `train` is false: a run cut short keeps the map it has):
+        `final_iters`, plus `final_iters_per_frame` a frame when synchronous or as long as
+        `final_time` allows in real time, their learning rates annealed to `final_lr_factor`; in
         batches, calling `progress(done, total)` after each (total None while a real-time run
         trains on for `final_time`, then (done, done) once); Ctrl-C stops between batches."""
         in_thread = self.mapping_in_thread
@@ -383,7 +385,9 @@ class SLAM:
         if self._features is not None:
             self._features.drain()
             self._correct()
-        total = self.config.final_iters if train else 0
+        # Synchronous: the iterations deferred from the frames, too.
+        deferred = 0 if in_thread else round(self.config.final_iters_per_frame * len(self.trajectory))
+        total = self.config.final_iters + deferred if train else 0
         # Real time: as many more as fit in `final_time` of the time the frames took.
         budget = (self.config.final_time * (time.perf_counter() - self._first_frame_at)
                   if train and in_thread and self._first_frame_at is not None else 0.0)
