@@ -173,9 +173,9 @@ class SLAMConfig:
     #: after the sequence is worth more than one after a frame: it draws from every keyframe
     #: and its learning rate anneals (`final_lr_factor`). 0.4 a frame at the end instead of
     #: one after each (`map_iters_frame` 1): 7-Scenes 3.49 against 2.80 fps, 25.14 against
-    #: 25.23 dB every 5th frame (ATE 3.95 / 3.97 cm); 400-frame Replica render 35.81 against
-    #: 35.48 dB, with Kinect-like noise 35.03 against 34.82 dB (those two with 0.5 a frame);
-    #: the built-in scene 2.3-2.4 against 1.9 fps, 31.87 against 32.06 dB.
+    #: 25.23 dB every 5th frame (ATE 3.95 / 3.97 cm); 400-frame Replica render 35.91 against
+    #: 35.48 dB, with Kinect-like noise 35.22 against 34.82 dB; the built-in scene 2.3-2.4
+    #: against 1.9 fps, 31.87 against 32.06 dB.
     final_iters_per_frame: float = 0.4
     #: With `mapping_thread`: the final iterations go on past `final_iters` while they have
     #: taken less than this share of the time the frames took (0: `final_iters` only). The
