@@ -257,7 +257,7 @@ def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scen
     np.testing.assert_allclose(a["color"], b["color"], atol=1e-5)  # the same iterations, batched
     capsys.readouterr()
     run(seq, tmp_path, SLAMConfig(features=False, final_iters=30, final_iters_per_frame=0.0,
-                                          map_iters_keyframe=2),
+                                  map_iters_keyframe=2),
         progress=Progress(len(seq)))
     assert "final mapping iterations 30/30" in capsys.readouterr().err
 
