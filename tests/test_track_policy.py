@@ -17,10 +17,13 @@ class RecordingTracker:
     order it was asked in."""
 
     def __init__(self, works=("map", "frame", "keyframe")):
-        self.works, self.asked = set(works), []
+        self.works, self.asked, self.prepared = set(works), [], []
 
     def prepare_reference(self, rgb, depth, K, pose):
-        return str(rgb.flat[0])  # the test's views carry their name in their first pixel
+        # The test's views carry their name in their first pixel; a map render has numbers.
+        name = "map" if rgb.dtype != object else str(rgb.flat[0])
+        self.prepared.append(name)
+        return name
 
     def track(self, rgb, depth, K, init_pose, reference):
         self.asked.append(reference)
@@ -33,10 +36,16 @@ def view(name: str) -> View:
     return View(np.eye(4), np.full((4, 4, 3), name, dtype=object), np.ones((4, 4), np.float32))
 
 
-def track(policy: TrackingPolicy, map_reference="map"):
-    policy._map_reference = lambda pose, render: (np.ones((4, 4), bool), map_reference)
+def map_render(covered: bool = True):
+    """A render of the map that covers the whole view (alpha 1), or none of it."""
+    return SimpleNamespace(alpha=np.full((4, 4), float(covered), np.float32),
+                           depth=np.ones((4, 4), np.float32), color=np.full((4, 4, 3), 0.5, np.float32))
+
+
+def track(policy: TrackingPolicy, covered: bool = True, render=None):
+    render = map_render(covered) if render is None else render
     return policy.track(np.zeros((4, 4, 3)), np.ones((4, 4), np.float32), np.eye(4),
-                        (np.eye(4), object()), (view("frame"), view("keyframe")))
+                        (np.eye(4), render), (view("frame"), view("keyframe")))
 
 
 def test_the_map_comes_first_every_nth_frame_and_the_last_frame_between():
@@ -76,7 +85,23 @@ def test_each_reference_is_tried_in_turn_until_one_aligns():
     assert track(policy).state == "ok" and tracker.asked == ["map", "frame", "keyframe"]
     tracker.asked.clear()
     # Without a map reference (too little coverage) the frame and the keyframe remain.
-    assert track(policy, map_reference=None).state == "ok" and tracker.asked == ["frame", "keyframe"]
+    assert track(policy, covered=False).state == "ok" and tracker.asked == ["frame", "keyframe"]
     tracker.works.clear()
     tracker.asked.clear()
     assert track(policy).state == "lost" and tracker.asked == ["map", "frame", "keyframe"]
+
+
+def test_the_map_render_is_prepared_only_when_tried_and_once():
+    tracker = RecordingTracker(works=("frame",))
+    policy = TrackingPolicy(tracker, np.eye(3), 0.8, 0.5, map_every=0)
+    render = map_render()
+    t = track(policy, render=render)
+    # Its coverage counts, but the last frame aligned: the render was never prepared.
+    assert t.state == "ok" and t.coverage == 1.0 and tracker.prepared == ["frame"]
+    tracker.works = {"map"}
+    tracker.prepared.clear()
+    for _ in range(2):  # a mapping thread's render serves several frames
+        assert track(policy, render=render).state == "ok"
+    assert tracker.prepared == ["frame", "map", "frame"]
+    tracker.prepared.clear()
+    assert track(policy).state == "ok" and tracker.prepared == ["frame", "map"]  # a new render

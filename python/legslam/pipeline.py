@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .datasets import each_readable
+from .datasets.read_ahead import ReadAhead
 from .eval import evaluate_run
 from .run_folder import (CONFIG, MAP, METRICS, PCA_FILE, RECORDING, TIMINGS, write_camera, write_json,
                          write_trajectory)
@@ -40,7 +41,8 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
     mapping iterations (`final_iterations(done, total)`). `viewer` (e.g.
     legslam.viewer.RerunViewer) sees every step, `on_frame(index, frame, step, slam)`, and the
     finished map, `on_finish(slam)`; its time is part of the wall time and is reported as its
-    own stage."""
+    own stage. A sequence's frames are read on a thread of their own, two ahead of SLAM
+    (datasets.read_ahead)."""
     config = config or SLAMConfig()
     live = getattr(seq, "live", False)
     if live and not config.mapping_thread:
@@ -66,6 +68,8 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
         if live:
             seq.close()
         raise
+    if not live:
+        frames = ReadAhead(frames)
     t0 = time.perf_counter()
     stamps, viewer_ms = [], []
     unreadable: set[int] = set()
@@ -94,6 +98,9 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
             seq.close()
         _save_partial(slam, out, stamps)
         raise
+    finally:
+        if isinstance(frames, ReadAhead):
+            frames.close()
     if viewer is not None:
         t1 = time.perf_counter()
         viewer.on_finish(slam)
