@@ -183,7 +183,11 @@ class SLAMConfig:
     #: map of a real-time run is short of iterations, and this spends on it a set share of
     #: the run, whatever its length: on 7-Scenes 300 final iterations instead of 100 gave
     #: +0.8 dB at 15.9 instead of 19.8 fps, but a fixed 300 halved a 400-frame run's rate.
-    final_time: float = 0.5
+    #: 0.75 since frames are read ahead (2026-11-26, alternating): 7-Scenes 23.66 dB every 5th
+    #: frame at 12.2 fps, against 0.5's 23.33 / 23.35 dB at 13.9 / 14.3 fps and 1.0's 23.83 /
+    #: 23.87 dB at 10.5 / 10.7; the 400-frame Replica render 33.01 dB at 12.9 fps, against
+    #: 32.13 dB at 13.1 and 33.23 dB at 9.9.
+    final_time: float = 0.75
     #: The final iterations' learning rates fall log-linearly from the mapper's to this many
     #: times them (1: constant), as the iterations (or, in real time, the time) run out. At a
     #: constant rate Adam keeps moving every Gaussian by about the rate each step; annealed,
