@@ -103,13 +103,13 @@ class TrackingPolicy:
 
     def _map_prepared(self, pose, render) -> Reference:
         """The render (the one `_trusted` saw last) prepared as a reference, once."""
-        rendered, trusted, reference = self._prepared
+        _, trusted, reference = self._prepared
         if reference is None:
             alpha = render.alpha
             depth = np.where(trusted, render.depth / np.maximum(alpha, 1e-6), 0).astype(np.float32)
             rgb = np.clip(render.color / np.maximum(alpha, 1e-6)[..., None], 0, 1)
             reference = self.tracker.prepare_reference(rgb, depth, self.K, pose)
-            self._prepared = (rendered, trusted, reference)
+            self._prepared = (render, trusted, reference)
         return reference
 
 
