@@ -644,6 +644,32 @@ def test_a_run_that_stops_keeps_the_frames_done(scene, tmp_path, capsys, monkeyp
     assert len(GaussianMap.load(out / "map.ply")) > 0
 
 
+def test_a_run_holds_numpy_blas_to_one_thread_and_gives_the_setting_back(scene, tmp_path):
+    # OpenBLAS's spinning threads took a tenth of a core from the engine's pools.
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads():
+        return {pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"}
+
+    if not blas_threads():
+        pytest.skip("numpy reports no BLAS thread pool here")
+    seen = []
+
+    class Watch:
+        def on_frame(self, i, frame, step, slam):
+            seen.append(blas_threads())
+
+        def on_finish(self, slam):
+            seen.append(blas_threads())
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        run(open_dataset(scene, max_frames=4), tmp_path, SLAMConfig(features=False, final_iters=5),
+            viewer=Watch())
+        after = blas_threads()
+    assert len(seen) == 5 and all(s == {1} for s in seen), seen
+    assert after == {2}
+
+
 def test_commands_name_a_damaged_map(mapped, tmp_path, capsys):
     import shutil
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .blas import one_blas_thread
 from .datasets import each_readable
 from .datasets.read_ahead import ReadAhead
 from .eval import evaluate_run
@@ -42,8 +43,12 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
     legslam.viewer.RerunViewer) sees every step, `on_frame(index, frame, step, slam)`, and the
     finished map, `on_finish(slam)`; its time is part of the wall time and is reported as its
     own stage. A sequence's frames are read on a thread of their own, two ahead of SLAM
-    (datasets.read_ahead)."""
-    config = config or SLAMConfig()
+    (datasets.read_ahead). numpy's BLAS runs on one thread meanwhile (legslam.blas)."""
+    with one_blas_thread():
+        return _run(seq, out_dir, config or SLAMConfig(), progress, evaluate_every, encoder, viewer)
+
+
+def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encoder, viewer) -> dict:
     live = getattr(seq, "live", False)
     if live and not config.mapping_thread:
         log.info("a live camera runs in real-time mode (mapping_thread = true)")

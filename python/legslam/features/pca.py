@@ -10,11 +10,11 @@ from __future__ import annotations
 
 import zipfile
 import zlib
-from functools import cache
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import ThreadpoolController
+
+from ..blas import one_blas_thread
 
 
 def _as_samples(x, dim: int | None, what: str) -> np.ndarray:
@@ -28,18 +28,6 @@ def _as_samples(x, dim: int | None, what: str) -> np.ndarray:
     if not np.isfinite(flat).all():
         raise ValueError(f"{what}: features contain NaN or inf")
     return flat
-
-
-@cache
-def _blas() -> ThreadpoolController:
-    return ThreadpoolController()
-
-
-def _one_blas_thread():
-    """Fitting runs its BLAS on one thread: beside a busy mapping thread and the encoder's
-    threads, OpenBLAS's threads took 2.4 s for the 384 x 384 eigendecomposition that one
-    thread does in 45 ms (real-time SLAM stalled on it, once the PCA was fitted)."""
-    return _blas().limit(limits=1, user_api="blas")
 
 
 class PCA:
@@ -82,7 +70,7 @@ class PCA:
             self._scatter = np.zeros((d, d))
         self.n_samples += flat.shape[0]
         self._sum += flat.sum(axis=0)
-        with _one_blas_thread():
+        with one_blas_thread():  # beside SLAM's pools (legslam.blas)
             self._scatter += flat.T @ flat
         self._solution = None
         return self
@@ -103,7 +91,7 @@ class PCA:
             raise ValueError(f"PCA needs at least 2 samples, has {self.n_samples}")
         mean = self._sum / self.n_samples
         cov = (self._scatter - self.n_samples * np.outer(mean, mean)) / (self.n_samples - 1)
-        with _one_blas_thread():
+        with one_blas_thread():  # beside SLAM's pools (legslam.blas)
             evals, evecs = np.linalg.eigh(cov)  # ascending
         top = evecs[:, ::-1][:, : self.n_components].T
         signs = np.sign(top[np.arange(top.shape[0]), np.abs(top).argmax(axis=1)])

@@ -1,0 +1,26 @@
+"""numpy's BLAS held to one thread where the engine's thread pools own the cores.
+
+OpenBLAS's threads spin for a while after each call they share: beside a busy mapping pool, an
+encoder and a tracker, that spinning takes a core's time from them (a tenth of a core through a
+real-time 7-Scenes run), and one call can stall on threads that are not scheduled (the PCA's
+384 x 384 eigendecomposition took 2.4 s on them, 45 ms on one thread).
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+from threadpoolctl import ThreadpoolController
+
+__all__ = ["one_blas_thread"]
+
+
+@cache
+def _controller() -> ThreadpoolController:
+    return ThreadpoolController()
+
+
+def one_blas_thread():
+    """A context in which numpy's BLAS runs on one thread (the limit before is restored after;
+    process-wide, as BLAS's own setting is)."""
+    return _controller().limit(limits=1, user_api="blas")
