@@ -8,19 +8,13 @@ real-time 7-Scenes run), and one call can stall on threads that are not schedule
 
 from __future__ import annotations
 
-from functools import cache
-
-from threadpoolctl import ThreadpoolController
+from threadpoolctl import threadpool_limits
 
 __all__ = ["one_blas_thread"]
 
 
-@cache
-def _controller() -> ThreadpoolController:
-    return ThreadpoolController()
-
-
 def one_blas_thread():
-    """A context in which numpy's BLAS runs on one thread (the limit before is restored after;
-    process-wide, as BLAS's own setting is)."""
-    return _controller().limit(limits=1, user_api="blas")
+    """A context in which every BLAS loaded (numpy's, and scipy's if it is) runs on one thread;
+    the limits before are restored after. Process-wide, as BLAS's own setting is. The loaded
+    libraries are looked up at each call (~1 ms): one loaded later would escape a list kept."""
+    return threadpool_limits(limits=1, user_api="blas")
