@@ -21,6 +21,8 @@
 //! [`Odometry`] chains frame-to-frame tracking with a constant-velocity motion prior.
 
 mod image;
+#[cfg(target_arch = "x86_64")]
+mod lanes;
 mod solve;
 
 pub use image::{Color, Frame, Reference};

@@ -245,8 +245,7 @@ pub(crate) fn eval_point(
     out
 }
 
-/// Sums over the rows of chunk `c`.
-#[inline(always)]
+/// Sums over the rows of chunk `c`, eight pixels at a time where `lanes` (AVX2 and FMA).
 fn accumulate_chunk(
     r: &RefLevel<'_>,
     f: &Level,
@@ -254,13 +253,26 @@ fn accumulate_chunk(
     t: &[f32; 3],
     p: &Params,
     c: usize,
+    lanes: bool,
 ) -> Sums {
     let mut s = Sums::default();
     let mut acc = RowAcc::default();
     let y1 = ((c + 1) * ROWS_PER_CHUNK).min(f.h);
     for y in c * ROWS_PER_CHUNK..y1 {
+        // SAFETY: `lanes` only where the CPU has AVX2 and FMA (`accumulate`).
+        #[cfg(target_arch = "x86_64")]
+        let done = if lanes {
+            unsafe { super::lanes::row_avx2(r, f, rot, t, p, y, &mut s) }
+        } else {
+            0
+        };
+        #[cfg(not(target_arch = "x86_64"))]
+        let done = {
+            let _ = lanes;
+            0
+        };
         let o = y * f.w;
-        for x in 0..f.w {
+        for x in done..f.w {
             let z = f.depth[o + x];
             if z <= 0.0 {
                 continue;
@@ -304,25 +316,7 @@ fn accumulate_chunk(
     s
 }
 
-/// [`accumulate_chunk`] compiled for AVX2 + FMA (the 8-wide row updates become single
-/// instructions).
-///
-/// # Safety
-/// The CPU must support AVX2 and FMA.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-unsafe fn accumulate_chunk_avx2(
-    r: &RefLevel<'_>,
-    f: &Level,
-    rot: &[[f32; 3]; 3],
-    t: &[f32; 3],
-    p: &Params,
-    c: usize,
-) -> Sums {
-    accumulate_chunk(r, f, rot, t, p, c)
-}
-
-fn has_avx2_fma() -> bool {
+pub(crate) fn has_avx2_fma() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
@@ -337,7 +331,7 @@ fn has_avx2_fma() -> bool {
 ///
 /// Rows are split into fixed chunks, each summed sequentially, and the chunk sums are added
 /// in order, so the result is bitwise identical for any number of threads (on a given CPU:
-/// the AVX2/FMA path rounds differently from the portable one).
+/// the AVX2 path, eight pixels at a time, sums in another order than the scalar one).
 pub(crate) fn accumulate(
     r: &RefLevel<'_>,
     f: &Level,
@@ -345,19 +339,22 @@ pub(crate) fn accumulate(
     t: &[f32; 3],
     p: &Params,
 ) -> Sums {
+    accumulate_with(r, f, rot, t, p, has_avx2_fma())
+}
+
+/// [`accumulate`], eight pixels at a time where `lanes` (the CPU must have AVX2 and FMA).
+pub(crate) fn accumulate_with(
+    r: &RefLevel<'_>,
+    f: &Level,
+    rot: &[[f32; 3]; 3],
+    t: &[f32; 3],
+    p: &Params,
+    lanes: bool,
+) -> Sums {
     let n_chunks = f.h.div_ceil(ROWS_PER_CHUNK);
-    let avx2 = has_avx2_fma();
     let parts: Vec<Sums> = (0..n_chunks)
         .into_par_iter()
-        .map(|c| {
-            #[cfg(target_arch = "x86_64")]
-            if avx2 {
-                // SAFETY: the CPU supports AVX2 and FMA (checked above).
-                return unsafe { accumulate_chunk_avx2(r, f, rot, t, p, c) };
-            }
-            let _ = avx2;
-            accumulate_chunk(r, f, rot, t, p, c)
-        })
+        .map(|c| accumulate_chunk(r, f, rot, t, p, c, lanes))
         .collect();
     let mut total = Sums::default();
     for s in &parts {

@@ -417,6 +417,113 @@ fn cpu_ms() -> f64 {
 /// Timing of the stages on a 640x480 synthetic view (run with `--ignored --nocapture`);
 /// wall and CPU time per call, since the machine may be shared. Speed is measured here and
 /// in benches/bench_tracking.py, never asserted.
+/// The eight-pixel AVX2 pass against the scalar one: the same correspondences (counts), the
+/// same normal equations to rounding, at every level of frames with holes in their depth, on a
+/// width that leaves a tail after the groups of eight, with and without photometric terms.
+#[test]
+fn lanes_accumulate_as_the_scalar_pass() {
+    if !solve::has_avx2_fma() {
+        eprintln!("skipped: this CPU has no AVX2/FMA");
+        return;
+    }
+    let k = Intrinsics {
+        width: 331,
+        height: 243,
+        cx: 165.0,
+        cy: 121.0,
+        ..intrinsics()
+    };
+    let cfg = TrackerConfig {
+        finest_level: 0,
+        levels: 4,
+        ..TrackerConfig::default()
+    };
+    let mut rng = crate::rng::Rng::new(7);
+    let mut checked = 0;
+    for (i, xi) in [
+        [0.0; 6],
+        [0.02, -0.01, 0.03, 0.01, -0.02, 0.015],
+        [0.3, 0.1, -0.2, 0.05, 0.2, -0.1],
+    ]
+    .iter()
+    .enumerate()
+    {
+        let t_wr = pose_of([0.01, 0.0, 0.0, 0.0, 0.01, 0.0]);
+        let t_wf = t_wr * pose_of(*xi);
+        let (rgb_r, mut d_r) = render(&t_wr, &k);
+        let (rgb_f, mut d_f) = render(&t_wf, &k);
+        // Holes, and depths out of range.
+        for d in d_r.iter_mut().chain(d_f.iter_mut()) {
+            let u = rng.next_f64();
+            if u < 0.05 {
+                *d = 0.0;
+            } else if u < 0.06 {
+                *d = 50.0;
+            }
+        }
+        let r = Reference::new(Color::RgbF32(&rgb_r), &d_r, &k, &t_wr, &cfg).unwrap();
+        let f = Frame::new(Color::RgbF32(&rgb_f), &d_f, &k, &cfg).unwrap();
+        let (rot, t) = to_f32(&(se3::inverse(&t_wr) * t_wf));
+        for l in 0..cfg.levels {
+            let rl = RefLevel {
+                lev: &r.frame.levels[l],
+                igd: &r.igd[l],
+                normals: &r.normals[l],
+            };
+            let base = Params::new(&cfg);
+            let variants = [
+                base,
+                Params {
+                    photo_weight: 0.0,
+                    ..base
+                },
+                Params {
+                    gain: 1.1,
+                    min_grad_sq: 1e-4,
+                    ..base
+                },
+            ];
+            for p in variants {
+                let a = solve::accumulate_with(&rl, &f.levels[l], &rot, &t, &p, false);
+                let b = solve::accumulate_with(&rl, &f.levels[l], &rot, &t, &p, true);
+                let what = format!("pose {i}, level {l}, {p:?}");
+                assert_eq!(
+                    (a.n_valid, a.n_geo, a.n_photo, a.n_inlier),
+                    (b.n_valid, b.n_geo, b.n_photo, b.n_inlier),
+                    "{what}"
+                );
+                let scale = a.h.iter().fold(1e-12f64, |m, v| m.max(v.abs()));
+                for (x, y) in a.h.iter().zip(&b.h) {
+                    assert!((x - y).abs() <= 1e-5 * scale, "H {x} vs {y}, {what}");
+                }
+                let bs = a.b.iter().fold(1e-12f64, |m, v| m.max(v.abs()));
+                for (x, y) in a.b.iter().zip(&b.b) {
+                    assert!(
+                        (x - y).abs() <= 1e-5 * bs.max(1e-6 * scale),
+                        "b {x} vs {y}, {what}"
+                    );
+                }
+                for (x, y, name) in [
+                    (a.cost, b.cost, "cost"),
+                    (a.sq_geo, b.sq_geo, "sq_geo"),
+                    (a.sq_photo, b.sq_photo, "sq_photo"),
+                    (a.depth_sum, b.depth_sum, "depth_sum"),
+                    (a.sum_ir, b.sum_ir, "sum_ir"),
+                    (a.sum_if, b.sum_if, "sum_if"),
+                ] {
+                    assert!(
+                        (x - y).abs() <= 1e-5 * x.abs().max(1e-9),
+                        "{name} {x} vs {y}, {what}"
+                    );
+                }
+                checked += usize::from(a.n_geo > 0 && a.n_photo > 0);
+            }
+        }
+    }
+    // Most cases had both kinds of terms (the large motion leaves some levels with few).
+    assert!(checked >= 18, "{checked} cases with terms");
+}
+
 #[test]
 #[ignore]
 fn track_timing_breakdown() {
