@@ -44,8 +44,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "relocalisation and loop closure)")
     p.add_argument("--realtime", action="store_true",
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
-                        "the iterations the spare CPU allows, and at the end trains on for three "
-                        "quarters as long as the frames took (config: mapping_thread, final_time)")
+                        "the iterations the spare CPU allows, and at the end trains on for 1.25 "
+                        "times as long as the frames took (config: mapping_thread, final_time)")
     p.add_argument("--final-iters", type=int, default=None, metavar="N",
                    help="mapping iterations over all keyframes once the frames have ended "
                         "(default 100, and synchronous runs 0.4 more per frame; more give a "

@@ -186,8 +186,11 @@ class SLAMConfig:
     #: 0.75 since frames are read ahead (2026-11-26, alternating): 7-Scenes 23.66 dB every 5th
     #: frame at 12.2 fps, against 0.5's 23.33 / 23.35 dB at 13.9 / 14.3 fps and 1.0's 23.83 /
     #: 23.87 dB at 10.5 / 10.7; the 400-frame Replica render 33.01 dB at 12.9 fps, against
-    #: 32.13 dB at 13.1 and 33.23 dB at 9.9.
-    final_time: float = 0.75
+    #: 32.13 dB at 13.1 and 33.23 dB at 9.9. 1.25 since frames are tracked eight pixels at a
+    #: time (2026-11-26): 7-Scenes 23.61 dB at 14.2 fps, against 0.75's 23.26 dB at 16.2 and,
+    #: with the old tracker in the same hour, 23.54 dB at 13.2; the Replica render 33.12 dB
+    #: at 13.3 fps, against 0.75's 31.65 dB at 17.2.
+    final_time: float = 1.25
     #: The final iterations' learning rates fall log-linearly from the mapper's to this many
     #: times them (1: constant), as the iterations (or, in real time, the time) run out. At a
     #: constant rate Adam keeps moving every Gaussian by about the rate each step; annealed,
