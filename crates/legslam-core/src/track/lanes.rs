@@ -265,14 +265,8 @@ pub(crate) unsafe fn row_avx2(
                 gather(normals.add(2), j4, gm),
             ];
             let vr = [
-                mul(
-                    _mm256_mask_i32gather_ps::<4>(zero, lev.xr.as_ptr(), ui, gm),
-                    zr,
-                ),
-                mul(
-                    _mm256_mask_i32gather_ps::<4>(zero, lev.yr.as_ptr(), vi, gm),
-                    zr,
-                ),
+                mul(gather(lev.xr.as_ptr(), ui, gm), zr),
+                mul(gather(lev.yr.as_ptr(), vi, gm), zr),
                 zr,
             ];
             let rg = add(
