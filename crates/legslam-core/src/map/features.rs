@@ -1,6 +1,8 @@
 //! A keyframe's compressed feature grid (the encoder's patch grid after PCA), and its bilinear
 //! upsampling to any image size: the feature target of the mapping loss.
 
+use rayon::prelude::*;
+
 use crate::Real;
 
 #[derive(Clone, Debug)]
@@ -60,13 +62,18 @@ impl FeatureGrid {
         out
     }
 
-    /// `upsample` into a reused buffer.
+    /// `upsample` into a reused buffer, rows in parallel (every mapping iteration with
+    /// features makes one).
     pub fn upsample_into(&self, width: usize, height: usize, out: &mut Vec<Real>) {
-        let k = self.k;
-        out.resize(width * height * k, 0.0);
-        for (p, o) in out.chunks_exact_mut(k.max(1)).enumerate() {
-            self.sample((p % width) as Real, (p / width) as Real, width, height, o);
-        }
+        let k = self.k.max(1);
+        out.resize(width * height * self.k, 0.0);
+        out.par_chunks_mut((width * k).max(1))
+            .enumerate()
+            .for_each(|(y, row)| {
+                for (x, o) in row.chunks_exact_mut(k).enumerate() {
+                    self.sample(x as Real, y as Real, width, height, o);
+                }
+            });
     }
 }
 
@@ -84,6 +91,24 @@ mod tests {
         for (a, b) in up.iter().zip(expect) {
             assert!((a - b).abs() < 1e-6, "{up:?}");
         }
+    }
+
+    #[test]
+    fn upsampling_is_the_sample_at_every_pixel() {
+        let (gw, gh, k) = (5, 3, 4);
+        let data: Vec<Real> = (0..gw * gh * k).map(|i| (i as Real * 0.37).sin()).collect();
+        let g = FeatureGrid::new(data, gw, gh, k).unwrap();
+        let (w, h) = (23, 17);
+        let up = g.upsample(w, h);
+        assert_eq!(up.len(), w * h * k);
+        let mut one = vec![0.0; k];
+        for y in 0..h {
+            for x in 0..w {
+                g.sample(x as Real, y as Real, w, h, &mut one);
+                assert_eq!(&up[(y * w + x) * k..][..k], &one[..], "pixel ({x}, {y})");
+            }
+        }
+        assert!(g.upsample(0, 0).is_empty());
     }
 
     #[test]

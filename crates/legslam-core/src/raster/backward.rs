@@ -537,7 +537,10 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
             L::select(ok, next, t).store(&mut tg.trans[lp..]);
             L::select(ok, prefix_next, prefix).store(&mut tg.prefix[lp..]);
         });
-        for (o, v) in slot.iter_mut().zip(acc) {
+        // A pair's sums are much of a small Gaussian's work: eight at once, then the rest.
+        let (first, rest) = acc.split_at(8);
+        slot[..8].copy_from_slice(&L::hsum8(first.try_into().unwrap()));
+        for (o, v) in slot[8..].iter_mut().zip(rest) {
             *o = v.hsum();
         }
     }

@@ -79,9 +79,22 @@ pub(crate) fn cover<L: Lanes>(
     // Beyond the cut-off ellipse the alpha test would fail anyway; the margin leaves the exact
     // decision on the ellipse's rim to the alpha test.
     let in_ellipse = L::and_not(sigma.le(L::splat(s.sigma_max + 1e-3)), sigma.lt(zero));
+    let candidates = L::and(inside, in_ellipse);
+    if L::bits(candidates) == 0 {
+        // No lane can pass the alpha test (the rows of a small Gaussian's bounding box often
+        // miss its ellipse): every caller skips a group without `ok` lanes, so the
+        // exponential, most of the cost, is not needed.
+        return Cover {
+            ok: candidates,
+            alpha: zero,
+            falloff: zero,
+            dx,
+            capped: candidates,
+        };
+    }
     let falloff = zero.sub(sigma).exp();
     let raw = L::splat(s.opacity).mul(falloff);
-    let ok = L::and_not(L::and(inside, in_ellipse), raw.lt(L::splat(cfg.alpha_min)));
+    let ok = L::and_not(candidates, raw.lt(L::splat(cfg.alpha_min)));
     Cover {
         ok,
         alpha: raw.min(L::splat(cfg.alpha_max)),

@@ -77,6 +77,11 @@ pub(crate) trait Lanes: Copy {
     fn exp(self) -> Self;
     /// The sum of the lanes, as ((0 + 4) + (2 + 6)) + ((1 + 5) + (3 + 7)).
     fn hsum(self) -> Real;
+    /// `hsum` of eight vectors at once (the same sums, bit for bit).
+    #[inline(always)]
+    fn hsum8(v: [Self; 8]) -> [Real; 8] {
+        v.map(Self::hsum)
+    }
     /// `out[i] += w * f[i]` over equally long slices.
     fn axpy(out: &mut [Real], w: Real, f: &[Real]);
     /// The dot product of two equally long slices: eight partial sums, then `hsum`, then the
@@ -393,6 +398,35 @@ mod avx2 {
                 _mm_cvtss_f32(_mm_add_ss(s, _mm_shuffle_ps::<1>(s, s)))
             }
         }
+        /// A transposition instead of eight reductions: halves added pairwise across
+        /// vectors, then the same tree as `hsum` in every lane.
+        #[inline(always)]
+        fn hsum8(v: [Self; 8]) -> [f32; 8] {
+            unsafe {
+                // [a0+a4, a1+a5, a2+a6, a3+a7 | the same of b] for the pairs (a, b).
+                let halves = |a: __m256, b: __m256| {
+                    _mm256_add_ps(
+                        _mm256_permute2f128_ps::<0x20>(a, b),
+                        _mm256_permute2f128_ps::<0x31>(a, b),
+                    )
+                };
+                let (ab, cd) = (halves(v[0].0, v[1].0), halves(v[2].0, v[3].0));
+                let (ef, gh) = (halves(v[4].0, v[5].0), halves(v[6].0, v[7].0));
+                // [a02, c02, a13, c13 | b02, d02, b13, d13], where a02 = (a0+a4) + (a2+a6).
+                let quarters = |x: __m256, y: __m256| {
+                    _mm256_add_ps(_mm256_unpacklo_ps(x, y), _mm256_unpackhi_ps(x, y))
+                };
+                let (abcd, efgh) = (quarters(ab, cd), quarters(ef, gh));
+                // [a, c, e, g | b, d, f, h], each a02 + a13.
+                let sums = _mm256_add_ps(
+                    _mm256_shuffle_ps::<0x44>(abcd, efgh),
+                    _mm256_shuffle_ps::<0xEE>(abcd, efgh),
+                );
+                let mut out = [0.0; 8];
+                _mm256_storeu_ps(out.as_mut_ptr(), sums);
+                [0, 4, 1, 5, 2, 6, 3, 7].map(|i| out[i])
+            }
+        }
         #[inline(always)]
         fn axpy(out: &mut [f32], w: f32, f: &[f32]) {
             let n = out.len().min(f.len());
@@ -492,6 +526,14 @@ mod tests {
             same(a.min(b), pa.min(pb), "min");
             same(a.exp(), pa.exp(), "exp");
             assert_eq!(a.hsum().to_bits(), pa.hsum().to_bits(), "hsum");
+            let vs: [[f32; LANES]; 8] = std::array::from_fn(|_| draw());
+            let sums = Avx2::hsum8(vs.map(|x| Avx2::load(&x)));
+            let one_by_one = vs.map(|x| Portable(x).hsum());
+            assert_eq!(
+                sums.map(f32::to_bits),
+                one_by_one.map(f32::to_bits),
+                "hsum8"
+            );
             for (m, pm) in [
                 (a.lt(b), pa.lt(pb)),
                 (a.le(b), pa.le(pb)),
