@@ -469,6 +469,7 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
         let depth = L::splat(s.depth);
         let (a, b, c) = (s.conic.x, s.conic.y, s.conic.z);
         let mut acc = [zero; SLOTS];
+        let mut touched = false;
         for_each_group(s, &r, |grp| {
             let lp = grp.lp;
             let cv = grp.cover::<L>(s, &cols, cfg);
@@ -476,6 +477,7 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
             if L::bits(ok) == 0 {
                 return;
             }
+            touched = true;
             let t = L::load(&tg.trans[lp..]);
             let wgt = L::select(ok, cv.alpha.mul(t), zero);
             let gc = [0, 1, 2].map(|ch| L::load(&tg.color[ch][lp..]));
@@ -537,6 +539,11 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
             L::select(ok, next, t).store(&mut tg.trans[lp..]);
             L::select(ok, prefix_next, prefix).store(&mut tg.prefix[lp..]);
         });
+        if !touched {
+            // The slot is zero already (a Gaussian whose ellipse misses the tile's pixels,
+            // or reaches only pixels that stopped compositing before it).
+            continue;
+        }
         // A pair's sums are much of a small Gaussian's work: eight at once, then the rest.
         let (first, rest) = acc.split_at(8);
         slot[..8].copy_from_slice(&L::hsum8(first.try_into().unwrap()));
