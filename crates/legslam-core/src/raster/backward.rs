@@ -544,7 +544,7 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
             // or reaches only pixels that stopped compositing before it).
             continue;
         }
-        // A pair's sums are much of a small Gaussian's work: eight at once, then the rest.
+        // Eight of the pair's sums in one transposition, then the rest.
         let (first, rest) = acc.split_at(8);
         slot[..8].copy_from_slice(&L::hsum8(first.try_into().unwrap()));
         for (o, v) in slot[8..].iter_mut().zip(rest) {

@@ -83,7 +83,7 @@ pub(crate) fn cover<L: Lanes>(
     if L::bits(candidates) == 0 {
         // No lane can pass the alpha test (the rows of a small Gaussian's bounding box often
         // miss its ellipse): every caller skips a group without `ok` lanes, so the
-        // exponential, most of the cost, is not needed.
+        // exponential, the costliest step here, is not needed.
         return Cover {
             ok: candidates,
             alpha: zero,
