@@ -143,11 +143,13 @@ def main() -> int:
     print(f"| peak memory (RSS) | {peak_mb:.0f} MB |")
     print(f"| frames per second, whole pipeline | {t['fps']:.2f} |")
     print(f"| frames per second while frames come in (before the final iterations) | {t['fps_live']:.2f} |")
+    its = t["mapping_iterations"]
+    print(f"| mapping iterations while frames came in / final | {its['while_frames_came_in']} / {its['final']} |")
     print("\n| stage | mean ms | median ms | total s |\n|---|---|---|---|")
     for k, v in t.items():
         if isinstance(v, dict) and "mean_ms" in v:
             print(f"| {k} | {v['mean_ms']:.1f} | {v['median_ms']:.1f} | {v['total_s']:.1f} |")
-        elif isinstance(v, dict):
+        elif isinstance(v, dict) and "total_s" in v:
             print(f"| {k} | | | {v['total_s']:.1f} |")
     Path(args.out, "bench.json").write_text(json.dumps(
         {"metrics": m, "timings": t, "odometry_ate_m": odo_ate, "odometry_ms": odo_ms,

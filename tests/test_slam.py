@@ -62,6 +62,10 @@ def test_outputs_are_written(mapped):
     for stage in ("preprocessing", "tracking", "mapping"):
         assert timings[stage]["count"] == 24
     assert timings["fps_live"] >= timings["fps"] > 0  # the final iterations come after the frames
+    # synchronous: the keyframes' iterations while frames come in, then the final ones
+    cfg, its = mapped["slam"].config, timings["mapping_iterations"]
+    assert its["while_frames_came_in"] == cfg.map_iters_keyframe * mapped["metrics"]["keyframes"], its
+    assert its["final"] == cfg.final_iters + round(cfg.final_iters_per_frame * 24), its
     assert json.loads((out / "metrics.json").read_text())["gaussians"] > 1000
     assert (out / "map.ply").stat().st_size > 1000
     assert any((out / "renders").glob("*_input_render.png"))

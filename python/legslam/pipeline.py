@@ -157,6 +157,9 @@ def _timing_table(slam: SLAM, wall_s: float, live_s: float, viewer_ms: list[floa
         table["covisibility (per keyframe, within mapping)"] = summary(slam.covisibility_ms)
     for key in ("render_s", "loss_s", "backward_s", "step_s"):
         table[f"mapping.{key[:-2]}"] = {"total_s": float(sum(getattr(s, key) for s in slam.mapping_stats))}
+    final = sum(s.iterations for s in slam.final_mapping_stats)
+    table["mapping_iterations"] = {"while_frames_came_in": sum(s.iterations for s in slam.mapping_stats) - final,
+                                   "final": final}
     if slam.config.mapping_thread:
         table["mapping.reference_render"] = {"total_s": slam.reference_render_s}
     if viewer_ms:

@@ -359,6 +359,11 @@ class SLAM:
         return self._mapping.stats + self._final_stats
 
     @property
+    def final_mapping_stats(self) -> list:
+        """The engine's report of the final iterations' training calls."""
+        return self._final_stats
+
+    @property
     def reference_render_s(self) -> float:
         """With a mapping thread: seconds it spent rendering tracking references."""
         return self._mapping.reference_s
