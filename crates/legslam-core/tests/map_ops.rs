@@ -21,16 +21,32 @@ fn pose() -> Pose {
     p
 }
 
-/// A 16x12 keyframe looking at a wall 2 m away, with a hole of invalid depth.
-fn wall() -> Keyframe {
-    let k = Intrinsics {
+/// The test keyframes' 16x12 camera.
+fn camera() -> Intrinsics {
+    Intrinsics {
         fx: 20.0,
         fy: 20.0,
         cx: 7.5,
         cy: 5.5,
         width: 16,
         height: 12,
-    };
+    }
+}
+
+/// Grows `map` from the whole of keyframe `kf` (no render: every valid candidate is new).
+fn grow_all(
+    map: &mut GaussianMap,
+    kf: &Keyframe,
+    features: Option<&FeatureGrid>,
+    origin: u32,
+    cfg: &GrowConfig,
+) -> usize {
+    grow(map, &kf.levels[0], &kf.pose, None, features, origin, cfg)
+}
+
+/// A 16x12 keyframe looking at a wall 2 m away, with a hole of invalid depth.
+fn wall() -> Keyframe {
+    let k = camera();
     let rgb = (0..16 * 12 * 3).map(|i| (i % 5) as Real / 5.0).collect();
     let mut depth = vec![2.0; 16 * 12];
     depth[16 + 1] = 0.0;
@@ -43,15 +59,7 @@ fn growth_back_projects_valid_sampled_pixels() {
     let mut map = GaussianMap::new(1, 2);
     let cfg = GrowConfig::default();
     let grid = FeatureGrid::new(vec![1.0, 2.0], 1, 1, 2).unwrap();
-    let added = grow(
-        &mut map,
-        &kf.levels[0],
-        &kf.pose,
-        None,
-        Some(&grid),
-        7,
-        &cfg,
-    );
+    let added = grow_all(&mut map, &kf, Some(&grid), 7, &cfg);
     // stride 2 from offset 1: x in 1,3,..,15 (8), y in 1,..,11 (6); pixel (1,1) is a hole.
     assert_eq!(added, 8 * 6 - 1);
     assert_eq!(map.len(), added);
@@ -70,6 +78,76 @@ fn growth_back_projects_valid_sampled_pixels() {
     let c0 = legslam_core::raster::sh::basis_c0();
     let p = 16 + 3;
     assert!((c0 * map.sh[0] + 0.5 - kf.levels[0].rgb[3 * p]).abs() < 1e-5);
+}
+
+/// The colour of `plain_wall_with_a_step` at pixel (x, y): two ramps and a constant.
+fn ramp(x: Real, y: Real) -> [Real; 3] {
+    [0.2 + 0.01 * x, 0.5, 0.7 - 0.02 * y]
+}
+
+/// `wall()` coloured by `ramp`, with a step in depth (2 m -> 3 m) from column 10 on.
+fn plain_wall_with_a_step() -> Keyframe {
+    let kf = wall();
+    let l = &kf.levels[0];
+    let rgb = (0..16 * 12)
+        .flat_map(|p| ramp((p % 16) as Real, (p / 16) as Real))
+        .collect();
+    let depth = (0..16 * 12)
+        .map(|p| match p % 16 {
+            _ if l.depth[p] == 0.0 => 0.0,
+            x if x >= 10 => 3.0,
+            _ => 2.0,
+        })
+        .collect();
+    Keyframe::new(0, rgb, depth, l.intrinsics, kf.pose, 1).unwrap()
+}
+
+#[test]
+fn growth_merges_smooth_blocks_of_four_candidates() {
+    let merging = GrowConfig {
+        merge_tolerance: 0.02,
+        ..Default::default()
+    };
+    // Textured (colours 0.2 apart): nothing merges, the same Gaussians as without merging.
+    let kf = wall();
+    let (mut a, mut b) = (GaussianMap::new(1, 0), GaussianMap::new(1, 0));
+    let plain = GrowConfig::default();
+    let n = grow_all(&mut a, &kf, None, 0, &plain);
+    assert_eq!(grow_all(&mut b, &kf, None, 0, &merging), n);
+    assert_eq!(a.means, b.means);
+
+    // Ramps of colour: candidates x in 1,3,..,15, y in 1,..,11 make 4 x 3 blocks. The block at
+    // (0, 0) holds the hole (its three others stand alone), the one over candidate columns 9
+    // and 11 straddles the depth step in each block row (four alone), the other eight merge.
+    let kf = plain_wall_with_a_step();
+    let mut map = GaussianMap::new(1, 2);
+    let grid = FeatureGrid::new(vec![1.0, 2.0], 1, 1, 2).unwrap();
+    let added = grow_all(&mut map, &kf, Some(&grid), 0, &merging);
+    assert_eq!(added, 8 + 3 + 3 * 4);
+    // log scale of a Gaussian `cells` pixels wide at depth z (f = 20)
+    let width = |z: f64, cells: f64| ((z * cells / 20.0) * plain.scale as f64).ln() as Real;
+    let is = |i: usize, cells: f64| {
+        [2.0, 3.0]
+            .iter()
+            .any(|&z| (map.log_scales[3 * i] - width(z, cells)).abs() < 1e-5)
+    };
+    let w2c = se3::inverse(&kf.pose);
+    let merged: Vec<usize> = (0..added).filter(|&i| is(i, 4.0)).collect();
+    assert_eq!(merged.len(), 8);
+    assert!((0..added).all(|i| merged.contains(&i) || is(i, 2.0)));
+    // The first merged block is the one over columns 5-7, rows 1-3: its Gaussian sits on the
+    // wall at the block's centre pixel (6, 2), in the ramps' colour there, with the feature.
+    let m = &map.means[3 * merged[0]..][..3];
+    let pc = se3::transform_point(&w2c, &[m[0] as f64, m[1] as f64, m[2] as f64].into());
+    assert!((pc[2] - 2.0).abs() < 1e-5, "{pc:?}");
+    let (u, v) = (20.0 * pc[0] / pc[2] + 7.5, 20.0 * pc[1] / pc[2] + 5.5);
+    assert!((u - 6.0).abs() < 1e-4 && (v - 2.0).abs() < 1e-4, "{u} {v}");
+    let c0 = legslam_core::raster::sh::basis_c0();
+    let sh = &map.sh[3 * merged[0]..][..3];
+    for (s, c) in sh.iter().zip(ramp(6.0, 2.0)) {
+        assert!((c0 * s + 0.5 - c).abs() < 1e-5);
+    }
+    assert_eq!(&map.features[2 * merged[0]..][..2], &[1.0, 2.0]);
 }
 
 #[test]
@@ -114,9 +192,9 @@ fn late_features_go_to_the_keyframes_gaussians_only() {
     let kf = wall();
     let mut map = GaussianMap::new(1, 3);
     let cfg = GrowConfig::default();
-    grow(&mut map, &kf.levels[0], &kf.pose, None, None, 1, &cfg);
+    grow_all(&mut map, &kf, None, 1, &cfg);
     let n1 = map.len();
-    grow(&mut map, &kf.levels[0], &kf.pose, None, None, 2, &cfg);
+    grow_all(&mut map, &kf, None, 2, &cfg);
     assert!(map.features.iter().all(|v| *v == 0.0) && !map.has_feature.iter().any(|h| *h));
     // Left half of the grid is (1,0,0), right half (0,1,0).
     let grid = FeatureGrid::new(vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0], 2, 1, 3).unwrap();

@@ -32,6 +32,13 @@ pub struct GrowConfig {
     /// Measured depths outside [depth_min, depth_max] metres are not used.
     pub depth_min: Real,
     pub depth_max: Real,
+    /// Where a block of 2x2 candidates is all unexplained and a plane fits its pixels' colour
+    /// within this (per channel, colour in [0, 1]) and their depth within
+    /// `merge_depth_tolerance` (a fraction of the depth), one Gaussian twice as wide stands for
+    /// the four (0: never): a smooth surface needs fewer Gaussians than a textured one to look
+    /// the same.
+    pub merge_tolerance: Real,
+    pub merge_depth_tolerance: Real,
 }
 
 impl Default for GrowConfig {
@@ -48,6 +55,8 @@ impl Default for GrowConfig {
             scale: 0.6,
             depth_min: 0.1,
             depth_max: 10.0,
+            merge_tolerance: 0.0,
+            merge_depth_tolerance: 0.01,
         }
     }
 }
@@ -59,8 +68,9 @@ pub struct RenderedView<'a> {
     pub depth: &'a [Real],
 }
 
-/// Adds one Gaussian per unexplained candidate pixel of `level` and returns how many.
-/// `features`, when given, sets each new Gaussian's feature from the target at its pixel.
+/// Adds one Gaussian per unexplained candidate pixel of `level` (or per smooth block of four,
+/// `GrowConfig::merge_tolerance`) and returns how many. `features`, when given, sets each new
+/// Gaussian's feature from the target at its pixel.
 pub fn grow(
     map: &mut GaussianMap,
     level: &Level,
@@ -72,59 +82,228 @@ pub fn grow(
 ) -> usize {
     let k = &level.intrinsics;
     let (w, h) = (k.width, k.height);
-    let c0 = sh::basis_c0();
-    let logit = (cfg.opacity / (1.0 - cfg.opacity)).ln();
     let stride = cfg.stride.max(1);
-    let mut sh_row = vec![0.0; map.sh_coeffs * 3];
-    let mut feat = vec![0.0; map.num_features];
     let use_features = features.is_some_and(|f| f.k == map.num_features) && map.num_features > 0;
-    let before = map.len();
-    for y in (stride / 2..h).step_by(stride) {
-        for x in (stride / 2..w).step_by(stride) {
-            let p = y * w + x;
-            let z = level.depth[p];
-            if !(z >= cfg.depth_min && z <= cfg.depth_max) {
-                continue;
+    let mut seeder = Seeder {
+        level,
+        pose,
+        features: features.filter(|_| use_features),
+        origin,
+        cfg,
+        logit: (cfg.opacity / (1.0 - cfg.opacity)).ln(),
+        sh_row: vec![0.0; map.sh_coeffs * 3],
+        feat: vec![0.0; map.num_features],
+    };
+    // The back-projected point of candidate pixel (x, y), unless its depth is invalid or the
+    // map already explains it.
+    let candidate = |x: usize, y: usize| -> Option<Vector3<f64>> {
+        let p = y * w + x;
+        let z = level.depth[p];
+        if !(z >= cfg.depth_min && z <= cfg.depth_max) {
+            return None;
+        }
+        if let Some(r) = &rendered {
+            let a = r.alpha[p];
+            let dz = r.depth[p] / a - z;
+            let explained = a >= cfg.alpha_threshold
+                && dz <= cfg.depth_tolerance * z
+                && -dz <= cfg.occluded_tolerance * z;
+            if explained {
+                return None;
             }
-            if let Some(r) = &rendered {
-                let a = r.alpha[p];
-                let dz = r.depth[p] / a - z;
-                let explained = a >= cfg.alpha_threshold
-                    && dz <= cfg.depth_tolerance * z
-                    && -dz <= cfg.occluded_tolerance * z;
-                if explained {
+        }
+        let zc = z as f64;
+        Some(Vector3::new(
+            (x as f64 - k.cx) * zc / k.fx,
+            (y as f64 - k.cy) * zc / k.fy,
+            zc,
+        ))
+    };
+    let xs: Vec<usize> = (stride / 2..w).step_by(stride).collect();
+    let ys: Vec<usize> = (stride / 2..h).step_by(stride).collect();
+    let before = map.len();
+    // Smooth blocks first, each marking its four candidates as seeded; then every other
+    // candidate on its own, row by row.
+    let mut merged = vec![false; xs.len() * ys.len()];
+    if cfg.merge_tolerance > 0.0 {
+        for by in (0..ys.len().saturating_sub(1)).step_by(2) {
+            for bx in (0..xs.len().saturating_sub(1)).step_by(2) {
+                let at = [(bx, by), (bx + 1, by), (bx, by + 1), (bx + 1, by + 1)];
+                let points = at.map(|(i, j)| candidate(xs[i], ys[j]));
+                let Some(points) = points.iter().copied().collect::<Option<Vec<_>>>() else {
+                    continue;
+                };
+                // The block's pixels: from the first candidate's cell to the last one's.
+                let x0 = xs[bx] - stride / 2;
+                let y0 = ys[by] - stride / 2;
+                let block = Block {
+                    xs: x0..(x0 + 2 * stride).min(w),
+                    ys: y0..(y0 + 2 * stride).min(h),
+                    width: w,
+                };
+                let (u, v) = (
+                    0.5 * (xs[bx] + xs[bx + 1]) as Real,
+                    0.5 * (ys[by] + ys[by + 1]) as Real,
+                );
+                let colour = |p: usize| [0, 1, 2].map(|c| level.rgb[p * 3 + c]);
+                let Some(colour) = block.plane(colour, |_| cfg.merge_tolerance) else {
+                    continue;
+                };
+                let depth = |p: usize| [level.depth[p]];
+                let valid =
+                    |p: usize| level.depth[p] >= cfg.depth_min && level.depth[p] <= cfg.depth_max;
+                // Valid everywhere, without a step or a fold.
+                if !block.pixels().all(|(_, _, p)| valid(p))
+                    || block
+                        .plane(depth, |z| cfg.merge_depth_tolerance * z[0])
+                        .is_none()
+                {
                     continue;
                 }
+                let colour = colour.at(u, v);
+                let centre = points.iter().sum::<Vector3<f64>>() / 4.0;
+                seeder.push(map, &centre, 2 * stride, &colour, (u, v));
+                at.iter()
+                    .for_each(|&(i, j)| merged[j * xs.len() + i] = true);
             }
-            let zc = z as f64;
-            let pc = Vector3::new(
-                (x as f64 - k.cx) * zc / k.fx,
-                (y as f64 - k.cy) * zc / k.fy,
-                zc,
-            );
-            let pw = se3::transform_point(pose, &pc);
-            let footprint = zc * stride as f64 / (0.5 * (k.fx + k.fy));
-            let log_scale = (footprint * cfg.scale as f64).ln() as Real;
-            for (s, c) in sh_row.iter_mut().zip(&level.rgb[p * 3..p * 3 + 3]) {
-                *s = (c - 0.5) / c0;
+        }
+    }
+    for (j, &y) in ys.iter().enumerate() {
+        for (i, &x) in xs.iter().enumerate() {
+            if merged[j * xs.len() + i] {
+                continue;
             }
-            if use_features {
-                features
-                    .unwrap()
-                    .sample(x as Real, y as Real, w, h, &mut feat);
+            if let Some(pc) = candidate(x, y) {
+                let p = y * w + x;
+                let colour = [0, 1, 2].map(|c| level.rgb[p * 3 + c]);
+                seeder.push(map, &pc, stride, &colour, (x as Real, y as Real));
             }
-            map.push(NewGaussian {
-                mean: [pw.x as Real, pw.y as Real, pw.z as Real],
-                log_scale: [log_scale; 3],
-                quat: [1.0, 0.0, 0.0, 0.0],
-                opacity_logit: logit,
-                sh: &sh_row,
-                feature: if use_features { &feat } else { &[] },
-                origin,
-            });
         }
     }
     map.len() - before
+}
+
+/// The pixels [xs) x [ys) of an image `width` wide.
+struct Block {
+    xs: std::ops::Range<usize>,
+    ys: std::ops::Range<usize>,
+    width: usize,
+}
+
+/// A plane per channel over the pixels of a block, fitted by least squares.
+struct Plane<const N: usize> {
+    centre: (Real, Real),
+    mean: [Real; N],
+    slope: [[Real; N]; 2],
+}
+
+impl<const N: usize> Plane<N> {
+    fn at(&self, x: Real, y: Real) -> [Real; N] {
+        let (dx, dy) = (x - self.centre.0, y - self.centre.1);
+        std::array::from_fn(|c| self.mean[c] + self.slope[0][c] * dx + self.slope[1][c] * dy)
+    }
+}
+
+impl Block {
+    /// (x, y, index) of every pixel.
+    fn pixels(&self) -> impl Iterator<Item = (usize, usize, usize)> + '_ {
+        self.ys
+            .clone()
+            .flat_map(move |y| self.xs.clone().map(move |x| (x, y, y * self.width + x)))
+    }
+
+    /// The plane through the block's `value`s if it fits every pixel's within `tolerance` (of
+    /// the plane's mean): a ramp (a blurred edge, shading, a slanted wall) is as smooth as a
+    /// constant to Gaussians that overlap their neighbours, texture and steps are not.
+    fn plane<const N: usize>(
+        &self,
+        value: impl Fn(usize) -> [Real; N],
+        tolerance: impl Fn(&[Real; N]) -> Real,
+    ) -> Option<Plane<N>> {
+        let n = (self.xs.len() * self.ys.len()) as Real;
+        let centre = (
+            (self.xs.start + self.xs.end - 1) as Real / 2.0,
+            (self.ys.start + self.ys.end - 1) as Real / 2.0,
+        );
+        let (mut mean, mut slope, mut xx, mut yy) = ([0.0; N], [[0.0; N]; 2], 0.0, 0.0);
+        for (x, y, p) in self.pixels() {
+            let (dx, dy) = (x as Real - centre.0, y as Real - centre.1);
+            xx += dx * dx;
+            yy += dy * dy;
+            for (c, v) in value(p).into_iter().enumerate() {
+                mean[c] += v / n;
+                slope[0][c] += dx * v;
+                slope[1][c] += dy * v;
+            }
+        }
+        // On a grid centred on its mean, the slopes' least squares are independent sums.
+        slope[0].iter_mut().for_each(|s| *s /= xx.max(1.0));
+        slope[1].iter_mut().for_each(|s| *s /= yy.max(1.0));
+        let plane = Plane {
+            centre,
+            mean,
+            slope,
+        };
+        let tolerance = tolerance(&mean);
+        let fits = self.pixels().all(|(x, y, p)| {
+            let fitted = plane.at(x as Real, y as Real);
+            value(p)
+                .iter()
+                .zip(fitted)
+                .all(|(v, f)| (v - f).abs() <= tolerance)
+        });
+        fits.then_some(plane)
+    }
+}
+
+/// Makes new Gaussians of one keyframe level.
+struct Seeder<'a> {
+    level: &'a Level,
+    pose: &'a Pose,
+    features: Option<&'a FeatureGrid>,
+    origin: u32,
+    cfg: &'a GrowConfig,
+    logit: Real,
+    sh_row: Vec<Real>,
+    feat: Vec<Real>,
+}
+
+impl Seeder<'_> {
+    /// A Gaussian at camera point `pc`, as wide as `stride` pixels there (times the configured
+    /// scale), of `colour`, with the feature target at pixel `at`.
+    fn push(
+        &mut self,
+        map: &mut GaussianMap,
+        pc: &Vector3<f64>,
+        stride: usize,
+        colour: &[Real; 3],
+        at: (Real, Real),
+    ) {
+        let k = &self.level.intrinsics;
+        let pw = se3::transform_point(self.pose, pc);
+        let footprint = pc.z * stride as f64 / (0.5 * (k.fx + k.fy));
+        let log_scale = (footprint * self.cfg.scale as f64).ln() as Real;
+        let c0 = sh::basis_c0();
+        for (s, c) in self.sh_row.iter_mut().zip(colour) {
+            *s = (c - 0.5) / c0;
+        }
+        if let Some(f) = self.features {
+            f.sample(at.0, at.1, k.width, k.height, &mut self.feat);
+        }
+        map.push(NewGaussian {
+            mean: [pw.x as Real, pw.y as Real, pw.z as Real],
+            log_scale: [log_scale; 3],
+            quat: [1.0, 0.0, 0.0, 0.0],
+            opacity_logit: self.logit,
+            sh: &self.sh_row,
+            feature: if self.features.is_some() {
+                &self.feat
+            } else {
+                &[]
+            },
+            origin: self.origin,
+        });
+    }
 }
 
 /// Gives every Gaussian created from keyframe `origin` that has no feature yet the target

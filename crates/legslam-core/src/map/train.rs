@@ -109,6 +109,11 @@ impl MapperConfig {
             ("pose_lr_translation", self.pose_lr_translation),
             ("pose_lr_rotation", self.pose_lr_rotation),
             ("exposure_lr", self.exposure_lr),
+            ("grow_merge_tolerance", self.grow.merge_tolerance),
+            (
+                "grow_merge_depth_tolerance",
+                self.grow.merge_depth_tolerance,
+            ),
         ] {
             if !(lr.is_finite() && lr >= 0.0) {
                 return Err(format!("{name} must be finite and >= 0, got {lr}"));
@@ -597,6 +602,8 @@ crate::options!(MapperConfig, "mapper", {
     "grow_occluded_tolerance" => grow.occluded_tolerance,
     "grow_opacity" => grow.opacity,
     "grow_scale" => grow.scale,
+    "grow_merge_tolerance" => grow.merge_tolerance,
+    "grow_merge_depth_tolerance" => grow.merge_depth_tolerance,
     "depth_min" => grow.depth_min,
     "depth_max" => grow.depth_max,
     "prune_min_opacity" => prune.min_opacity,
