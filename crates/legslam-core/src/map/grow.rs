@@ -212,9 +212,10 @@ impl Block {
             .flat_map(move |y| self.xs.clone().map(move |x| (x, y, y * self.width + x)))
     }
 
-    /// The plane through the block's `value`s if it fits every pixel's within `tolerance` (of
-    /// the plane's mean): a ramp (a blurred edge, shading, a slanted wall) is as smooth as a
-    /// constant to Gaussians that overlap their neighbours, texture and steps are not.
+    /// The least-squares plane through the block's `value`s if it fits every pixel's within
+    /// `tolerance(mean)` (a depth's tolerance is relative): a ramp (a blurred edge, shading, a
+    /// slanted wall) is as smooth as a constant to Gaussians that overlap their neighbours,
+    /// texture and steps are not.
     fn plane<const N: usize>(
         &self,
         value: impl Fn(usize) -> [Real; N],
