@@ -105,7 +105,7 @@ impl MapperConfig {
                 self.finest_level, self.grow_level, self.levels
             ));
         }
-        for (name, lr) in [
+        for (name, v) in [
             ("pose_lr_translation", self.pose_lr_translation),
             ("pose_lr_rotation", self.pose_lr_rotation),
             ("exposure_lr", self.exposure_lr),
@@ -115,8 +115,8 @@ impl MapperConfig {
                 self.grow.merge_depth_tolerance,
             ),
         ] {
-            if !(lr.is_finite() && lr >= 0.0) {
-                return Err(format!("{name} must be finite and >= 0, got {lr}"));
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} must be finite and >= 0, got {v}"));
             }
         }
         if !(0.0..=1.0).contains(&self.revisit) {
