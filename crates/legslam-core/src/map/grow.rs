@@ -94,14 +94,17 @@ pub fn grow(
         sh_row: vec![0.0; map.sh_coeffs * 3],
         feat: vec![0.0; map.num_features],
     };
+    // Whether pixel p measured a depth growth uses; its colour.
+    let valid = |p: usize| level.depth[p] >= cfg.depth_min && level.depth[p] <= cfg.depth_max;
+    let colour = |p: usize| [0, 1, 2].map(|c| level.rgb[p * 3 + c]);
     // The back-projected point of candidate pixel (x, y), unless its depth is invalid or the
     // map already explains it.
     let candidate = |x: usize, y: usize| -> Option<Vector3<f64>> {
         let p = y * w + x;
-        let z = level.depth[p];
-        if !(z >= cfg.depth_min && z <= cfg.depth_max) {
+        if !valid(p) {
             return None;
         }
+        let z = level.depth[p];
         if let Some(r) = &rendered {
             let a = r.alpha[p];
             let dz = r.depth[p] / a - z;
@@ -145,13 +148,10 @@ pub fn grow(
                     0.5 * (xs[bx] + xs[bx + 1]) as Real,
                     0.5 * (ys[by] + ys[by + 1]) as Real,
                 );
-                let colour = |p: usize| [0, 1, 2].map(|c| level.rgb[p * 3 + c]);
-                let Some(colour) = block.plane(colour, |_| cfg.merge_tolerance) else {
+                let Some(fitted) = block.plane(colour, |_| cfg.merge_tolerance) else {
                     continue;
                 };
                 let depth = |p: usize| [level.depth[p]];
-                let valid =
-                    |p: usize| level.depth[p] >= cfg.depth_min && level.depth[p] <= cfg.depth_max;
                 // Valid everywhere, without a step or a fold.
                 if !block.pixels().all(|(_, _, p)| valid(p))
                     || block
@@ -160,9 +160,8 @@ pub fn grow(
                 {
                     continue;
                 }
-                let colour = colour.at(u, v);
                 let centre = points.iter().sum::<Vector3<f64>>() / 4.0;
-                seeder.push(map, &centre, 2 * stride, &colour, (u, v));
+                seeder.push(map, &centre, 2 * stride, &fitted.at(u, v), (u, v));
                 at.iter()
                     .for_each(|&(i, j)| merged[j * xs.len() + i] = true);
             }
@@ -174,9 +173,8 @@ pub fn grow(
                 continue;
             }
             if let Some(pc) = candidate(x, y) {
-                let p = y * w + x;
-                let colour = [0, 1, 2].map(|c| level.rgb[p * 3 + c]);
-                seeder.push(map, &pc, stride, &colour, (x as Real, y as Real));
+                let c = colour(y * w + x);
+                seeder.push(map, &pc, stride, &c, (x as Real, y as Real));
             }
         }
     }
