@@ -10,6 +10,10 @@ final map rendered at the estimated pose of every 5th frame and of every keyfram
 of Gaussians, peak memory, frames per second and the per-stage time table.
 
     python benches/bench_slam.py [PATH] [--max-frames N] [--stride S] [--no-features] [--out DIR]
+                                 [--config FILE] [--pace [SPEED]]
+
+`--pace` plays the frames as their camera delivered them (`legslam run --pace`): with
+`mapping_thread` the map then gets what a live camera's gaps between frames leave.
 """
 
 from __future__ import annotations
@@ -89,6 +93,8 @@ def main() -> int:
     ap.add_argument("--no-features", action="store_true")
     ap.add_argument("--config", default=None, help="SLAM config file (.toml/.json)")
     ap.add_argument("--out", default="/tmp/legslam-bench-slam")
+    ap.add_argument("--pace", type=float, nargs="?", const=1.0, default=None, metavar="SPEED",
+                    help="hand frames over no faster than SPEED times their timestamps' rate")
     args = ap.parse_args()
     if not Path(args.path).exists():
         print(f"no sequence at {args.path} (the shared data folder beside the repository)")
@@ -102,7 +108,7 @@ def main() -> int:
     overrides = {"features": False} if args.no_features else {}
     cfg = SLAMConfig.from_file(args.config, **overrides) if args.config else SLAMConfig(**overrides)
     print(f"{args.path}: {len(seq)} frames, {os.cpu_count()} cores, features {cfg.features}")
-    result = run(seq, args.out, cfg, progress=Progress(len(seq)))
+    result = run(seq, args.out, cfg, progress=Progress(len(seq)), pace=args.pace)
     m, t = result["metrics"], result["timings"]
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     from legslam.eval import ate_rmse, read_tum
@@ -143,6 +149,10 @@ def main() -> int:
     print(f"| peak memory (RSS) | {peak_mb:.0f} MB |")
     print(f"| frames per second, whole pipeline | {t['fps']:.2f} |")
     print(f"| frames per second while frames come in (before the final iterations) | {t['fps_live']:.2f} |")
+    if "playback" in t:
+        p = t["playback"]
+        print(f"| played at the recorded pace x {p['speed']:g}: frames late (after the next was due), "
+              f"latest | {p['late_frames']}, {p['max_lag_s']:.2f} s |")
     its = t["mapping_iterations"]
     print(f"| mapping iterations while frames came in / final | {its['while_frames_came_in']} / {its['final']} |")
     print("\n| stage | mean ms | median ms | total s |\n|---|---|---|---|")

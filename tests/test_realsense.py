@@ -255,6 +255,14 @@ def test_no_sdk_or_no_camera_is_said(tmp_path, shots, monkeypatch, capsys):
         next(cam.frames())
 
 
+def test_pace_is_refused_with_a_camera(tmp_path, shots, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "pyrealsense2", FakeSDK(shots, [[0], [1]]))
+    out = tmp_path / "live"
+    assert main(["run", "realsense", "--pace", "--out", str(out), *FAST]) == 2
+    assert "a camera (or the RealSense SDK's playback) delivers frames at its own" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_a_camera_that_stops_delivering_stops_the_run_with_its_work_kept(tmp_path, shots, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "pyrealsense2", FakeSDK(shots, [[0], [1], [2], [3]]))  # then nothing
     out = tmp_path / "unplugged"

@@ -22,6 +22,7 @@ from .blas import one_blas_thread
 from .datasets import each_readable
 from .datasets.read_ahead import ReadAhead
 from .eval import evaluate_run
+from .playback import Pacer
 from .run_folder import (CONFIG, MAP, METRICS, PCA_FILE, RECORDING, TIMINGS, write_camera, write_json,
                          write_trajectory)
 from .slam import SLAM, SLAMConfig
@@ -32,7 +33,7 @@ log = logging.getLogger("legslam")
 
 
 def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_every: int = 5,
-        encoder=None, viewer=None) -> dict:
+        encoder=None, viewer=None, pace: float | None = None) -> dict:
     """Runs SLAM over a sequence (from legslam.datasets.open) and writes the outputs. A live
     camera (datasets.realsense.RealSenseCamera) runs in real-time mode, records its frames in
     the run folder (`recording/`) and is evaluated on them; `metrics["dropped_frames"]`
@@ -43,13 +44,22 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
     legslam.viewer.RerunViewer) sees every step, `on_frame(index, frame, step, slam)`, and the
     finished map, `on_finish(slam)`; its time is part of the wall time and is reported as its
     own stage. A sequence's frames are read on a thread of their own, two ahead of SLAM
-    (datasets.read_ahead). numpy's BLAS runs on one thread meanwhile (legslam.blas)."""
+    (datasets.read_ahead). numpy's BLAS runs on one thread meanwhile (legslam.blas).
+
+    `pace`: a recording's frames are handed to SLAM no faster than `pace` times their
+    timestamps' rate (1: as the camera delivered them; legslam.playback), and `timings.json`
+    reports how far SLAM fell behind (`playback`); None: as fast as SLAM takes them."""
     with one_blas_thread():
-        return _run(seq, out_dir, config or SLAMConfig(), progress, evaluate_every, encoder, viewer)
+        return _run(seq, out_dir, config or SLAMConfig(), progress, evaluate_every, encoder, viewer,
+                    pace)
 
 
-def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encoder, viewer) -> dict:
+def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encoder, viewer,
+         pace: float | None) -> dict:
     live = getattr(seq, "live", False)
+    if pace is not None and live:
+        raise ValueError("a live camera delivers frames at its own pace; pacing plays a recording")
+    pacer = None if pace is None else Pacer(pace)
     if live and not config.mapping_thread:
         log.info("a live camera runs in real-time mode (mapping_thread = true)")
         config = replace(config, mapping_thread=True)
@@ -80,6 +90,8 @@ def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encode
     unreadable: set[int] = set()
     try:
         for i, f in frames:
+            if pacer is not None:
+                pacer.wait(seq.timestamp(i) if f is None else f.timestamp)
             if f is None:  # lost: the motion model's pose
                 unreadable.add(i)
                 stamps.append(seq.timestamp(i))
@@ -114,6 +126,8 @@ def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encode
 
     _save_trajectory_and_map(slam, out, stamps)
     timings = _timing_table(slam, wall, live_s, viewer_ms)
+    if pacer is not None:
+        timings["playback"] = pacer.report()
     write_json(out / TIMINGS, timings)
     renders = out / "renders"
     renders.mkdir(exist_ok=True)

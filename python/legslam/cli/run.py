@@ -12,6 +12,7 @@ from pathlib import Path
 from ..datasets.realsense import RealSenseCamera
 from ..eval import every_key
 from ..pipeline import run as run_pipeline
+from ..playback import Pacer
 from ..run_folder import RUN_FILES, write_json
 from ..slam import SLAMConfig
 from ..viewer import RerunViewer, ViewerError
@@ -46,6 +47,11 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
                         "the iterations the spare CPU allows, and at the end trains on for 1.25 "
                         "times as long as the frames took (config: mapping_thread, final_time)")
+    p.add_argument("--pace", type=float, nargs="?", const=1.0, default=None, metavar="SPEED",
+                   help="play the recording as its camera delivered it: no frame before its "
+                        "timestamp says (SPEED times the recorded speed, default 1), so that "
+                        "--realtime maps as it would live; timings.json says how far SLAM fell "
+                        "behind (without: frames as fast as SLAM takes them)")
     p.add_argument("--final-iters", type=int, default=None, metavar="N",
                    help="mapping iterations over all keyframes once the frames have ended "
                         "(default 100, and synchronous runs 0.4 more per frame; more give a "
@@ -109,13 +115,21 @@ def run_output_dir(path, source, overwrite: bool) -> Path:
 def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
     """Runs SLAM over `seq` (a Sequence, or a live camera) into --out (default
     legslam-out/NAME) and prints the figures."""
+    live = getattr(seq, "live", False)
+    if args.pace is not None:
+        if live:
+            raise UserError("--pace plays a recording read by legslam at its camera's pace; a camera "
+                            "(or the RealSense SDK's playback) delivers frames at its own")
+        try:
+            Pacer(args.pace)
+        except ValueError as e:
+            raise UserError(f"--pace: {e}") from e
     out = run_output_dir(args.out or Path("legslam-out") / name, seq.path, args.overwrite)
     viewer = _viewer(args)
-    live = getattr(seq, "live", False)
     progress = None if args.quiet else Progress(None if live else len(seq))
     try:
         with stopping_on_interrupt(seq) if live else nullcontext():
-            result = run_pipeline(seq, out, config, progress=progress, viewer=viewer)
+            result = run_pipeline(seq, out, config, progress=progress, viewer=viewer, pace=args.pace)
     # The encoder model not in the cache, the first frame or too many in a row unreadable, a
     # config the camera or encoder cannot take, a camera that cannot start.
     except (FileNotFoundError, ValueError, ViewerError) as e:
@@ -140,6 +154,10 @@ def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
         return "n/a" if v is None else format(v, spec)
     print(f"PSNR {fmt(e['psnr'], '.2f')} dB  SSIM {fmt(e['ssim'], '.3f')}  depth L1 "
           f"{fmt(e['depth_l1_cm'], '.2f')} cm  (map rendered at frames 0, {n}, {2 * n}, ...)")
+    if "playback" in t:
+        p = t["playback"]
+        print(f"played at {p['speed']:g}x the recorded pace: {p['late_frames']} frames came after the "
+              f"next was due (a live camera would have dropped them), at most {p['max_lag_s']:.2f} s late")
     print("per-stage mean ms/frame: " + "  ".join(
         f"{k} {t[k]['mean_ms']:.1f}" for k in ("preprocessing", "tracking", "mapping")))
     print(f"outputs in {out}/: trajectory.txt map.ply metrics.json timings.json renders/")
