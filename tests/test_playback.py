@@ -9,6 +9,7 @@ import pytest
 from legslam.cli import main
 from legslam.datasets import open as open_dataset
 from legslam.pipeline import run
+from legslam import playback
 from legslam.playback import Pacer
 from legslam.slam import SLAMConfig
 
@@ -33,11 +34,21 @@ def test_timestamps_going_back_or_not_numbers_are_due_at_once():
     # 0.2 s is the latest time; the backward and NaN stamps add no wait of their own.
     elapsed = _play(Pacer(1.0), [0.0, 0.2, 0.1, math.nan, 0.2])
     assert 0.2 <= elapsed < 0.35, elapsed
-    assert _play(Pacer(1.0), [math.nan, 0.5, 1.0]) < 0.1  # no origin time: nothing to pace by
+    # The first finite timestamp is the origin.
+    assert 0.5 <= _play(Pacer(1.0), [math.nan, 0.5, 1.0]) < 0.65
     # A frame stamped back in time is not counted late for it.
     back = Pacer(1.0)
     _play(back, [0.0, 0.1, 0.0, 0.15])
     assert back.report()["late_frames"] == 0 and back.report()["max_lag_s"] < 0.03, back.report()
+
+
+def test_a_gap_in_the_recording_is_waited_out_and_said(monkeypatch, caplog):
+    monkeypatch.setattr(playback, "GAP_S", 0.1)
+    with caplog.at_level("WARNING", logger="legslam"):
+        elapsed = _play(Pacer(1.0), [0.0, 0.05, 0.3])
+    assert elapsed >= 0.3
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1 and "timestamps jump to 0.300 s: waiting 0.2" in warnings[0], warnings
 
 
 def test_frames_handed_over_after_the_next_was_due_are_counted_late():

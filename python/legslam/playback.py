@@ -5,19 +5,26 @@ live camera's gaps between frames leave it, as it would live."""
 
 from __future__ import annotations
 
+import logging
 import math
 import numbers
 import time
 
 __all__ = ["Pacer"]
 
+log = logging.getLogger("legslam")
+
+#: A wait longer than this (seconds) is a gap in the recording, said in a warning.
+GAP_S = 5.0
+
 
 class Pacer:
     """Waits until each frame is due. Frame times count from the first frame's timestamp
-    (seconds) and the moment it was handed over; a timestamp that is not a finite number, or
-    earlier than one before it, is due at once. SLAM running behind is not made to drop frames
-    (a live camera would): each frame waits its turn, and `report` says how many were handed
-    over after the next one was already due."""
+    (seconds; the first finite one) and the moment it was handed over; a timestamp that is not a
+    finite number, or earlier than one before it, is due at once. A gap in the timestamps is
+    waited out, as the camera did, with a warning when it is longer than `GAP_S`. SLAM running
+    behind is not made to drop frames (a live camera would): each frame waits its turn, and
+    `report` says how many were handed over after the next one was already due."""
 
     def __init__(self, speed: float):
         if not (isinstance(speed, numbers.Real) and not isinstance(speed, bool)
@@ -32,14 +39,18 @@ class Pacer:
     def wait(self, timestamp: float) -> None:
         """Returns when the frame stamped `timestamp` is due."""
         now = time.perf_counter()
-        if self._origin is None:
+        finite = math.isfinite(timestamp)
+        if self._origin is None and finite:
             self._origin = (now, timestamp)
-        clock, first = self._origin
         due = now
-        if math.isfinite(timestamp) and math.isfinite(first):
+        if finite:
+            clock, first = self._origin
             due = clock + (timestamp - first) / self.speed
             if self._due:  # never before the frame before it
                 due = max(due, self._due[-1])
+        if due - now > GAP_S:
+            log.warning("the recording's timestamps jump to %.3f s: waiting %.1f s for that frame, "
+                        "as its camera delivered it", timestamp, due - now)
         if due > now:
             time.sleep(due - now)
         self._due.append(due)
