@@ -32,7 +32,7 @@ class Pacer:
             raise ValueError(f"the playback speed must be a number > 0 (1: the recording's own "
                              f"pace), got {speed!r}")
         self.speed = float(speed)
-        self._origin = None  # (clock, timestamp) of the first frame
+        self._origin = None  # (clock, timestamp) of the first frame with a finite timestamp
         self._due: list[float] = []
         self._handed: list[float] = []
 
@@ -59,7 +59,7 @@ class Pacer:
     def report(self) -> dict:
         """The speed, how many frames were handed over when the next was already due (those a
         live camera would have dropped), and the latest a frame came (seconds after its time)."""
-        d = self._due
-        late = sum(h > after > due for h, due, after in zip(self._handed, d, d[1:]))
-        lag = max((h - d for h, d in zip(self._handed, self._due)), default=0.0)
+        handed, due = self._handed, self._due
+        late = sum(h > after > d for h, d, after in zip(handed, due, due[1:]))
+        lag = max((h - d for h, d in zip(handed, due)), default=0.0)
         return {"speed": self.speed, "late_frames": int(late), "max_lag_s": float(lag)}
