@@ -2,6 +2,11 @@
 runs the engine behind a guard that turns a panic into RuntimeError, bindings name the argument
 whose shape or dtype is wrong, and options keep their kinds."""
 
+import os
+import sys
+import threading
+import time
+
 import numpy as np
 import pytest
 
@@ -147,3 +152,30 @@ def test_keyframe_corrections_are_checked_by_name_and_value():
     with pytest.raises(ValueError, match="correction 0 rotation must be orthonormal"):
         mapper.correct_keyframes(skew[None])
     assert mapper.correct_keyframes(np.eye(4)[None]) == mapper.num_gaussians
+
+
+def _map_pool_threads() -> dict:
+    """Thread id -> nice value of the process's mapper pool threads (Linux /proc)."""
+    out = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            comm = open(f"/proc/self/task/{tid}/comm").read().strip()
+        except OSError:  # ended meanwhile
+            continue
+        if comm.startswith("legslam-map"):
+            out[int(tid)] = os.getpriority(os.PRIO_PROCESS, int(tid))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="thread priorities are set on Linux only")
+def test_a_background_mappers_threads_give_way_to_the_others():
+    mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    for background, nice in ((True, min(mine + 10, 19)), (False, mine)):
+        before = set(_map_pool_threads())
+        mapper = _core.MapperCore(threads=2, background=background)
+        deadline = time.monotonic() + 5  # rayon starts its threads as the pool is built
+        while len(set(_map_pool_threads()) - before) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        new = {t: n for t, n in _map_pool_threads().items() if t not in before}
+        assert len(new) == 2 and set(new.values()) == {nice}, (background, new, mine)
+        del mapper

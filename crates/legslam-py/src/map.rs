@@ -103,17 +103,19 @@ pub struct PyMapper {
 #[pymethods]
 impl PyMapper {
     /// `options`: mapper options by name (see `mapper_options`); `threads`: run on a pool of
-    /// this many threads of its own instead of the global one.
+    /// this many threads of its own instead of the global one; `background`: that pool's
+    /// threads give way to the process's others (a tracker beside them; Linux).
     #[new]
-    #[pyo3(signature = (options=None, threads=None))]
+    #[pyo3(signature = (options=None, threads=None, background=false))]
     fn new(
         py: Python<'_>,
         options: Option<&Bound<'_, PyDict>>,
         threads: Option<usize>,
+        background: bool,
     ) -> PyResult<Self> {
         // Mapper::new checks the options.
         let config = options_from(py, options, "mapper", |_: &MapperConfig| Ok(()))?;
-        let pool = pool::build(threads, "legslam-map")?;
+        let pool = pool::build(threads, "legslam-map", background)?;
         let inner = pool::call(&pool, py, || Mapper::new(config))?;
         Ok(PyMapper { inner, pool })
     }

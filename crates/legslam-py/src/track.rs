@@ -159,7 +159,7 @@ impl PyTracker {
     ) -> PyResult<Self> {
         Ok(PyTracker {
             config: tracker_config(py, options)?,
-            pool: pool::build(threads, "legslam-track")?,
+            pool: pool::build(threads, "legslam-track", false)?,
         })
     }
 

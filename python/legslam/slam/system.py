@@ -88,7 +88,9 @@ class SLAM:
         self.K_track, *size = _core.scaled_intrinsics(self.K, self.width, self.height, s)
         self.track_size = tuple(size)
         threads = (c.mapping_threads or os.cpu_count() or 2) if c.mapping_thread else None
-        self.mapper = _core.MapperCore(c.mapper_options(self.width), threads=threads)
+        # In real time the mapping threads give way to the tracker: a frame waits less.
+        self.mapper = _core.MapperCore(c.mapper_options(self.width), threads=threads,
+                                       background=c.mapping_thread)
         tracker = Tracker(threads=1 if c.mapping_thread else None,
                           **c.tracker_options(*self.track_size))
         self.tracking = TrackingPolicy(tracker, self.K_track, c.reference_alpha, c.min_reference_coverage,
