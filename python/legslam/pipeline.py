@@ -22,7 +22,7 @@ from .blas import one_blas_thread
 from .datasets import each_readable
 from .datasets.read_ahead import ReadAhead
 from .eval import evaluate_run
-from .playback import Pacer
+from .playback import pacer_for
 from .run_folder import (CONFIG, MAP, METRICS, PCA_FILE, RECORDING, TIMINGS, write_camera, write_json,
                          write_trajectory)
 from .slam import SLAM, SLAMConfig
@@ -57,9 +57,7 @@ def run(seq, out_dir, config: SLAMConfig | None = None, progress=None, evaluate_
 def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encoder, viewer,
          pace: float | None) -> dict:
     live = getattr(seq, "live", False)
-    if pace is not None and live:
-        raise ValueError("a live camera delivers frames at its own pace; pacing plays a recording")
-    pacer = None if pace is None else Pacer(pace)
+    pacer = pacer_for(pace, live)
     if live and not config.mapping_thread:
         log.info("a live camera runs in real-time mode (mapping_thread = true)")
         config = replace(config, mapping_thread=True)
@@ -90,14 +88,14 @@ def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encode
     unreadable: set[int] = set()
     try:
         for i, f in frames:
+            stamp = seq.timestamp(i) if f is None else f.timestamp
             if pacer is not None:
-                pacer.wait(seq.timestamp(i) if f is None else f.timestamp)
+                pacer.wait(stamp)
+            stamps.append(stamp)
             if f is None:  # lost: the motion model's pose
                 unreadable.add(i)
-                stamps.append(seq.timestamp(i))
                 slam.skip()
                 continue
-            stamps.append(f.timestamp)
             r = slam.step(f.rgb, f.depth)
             if viewer is not None:
                 t1 = time.perf_counter()

@@ -9,13 +9,25 @@ import logging
 import math
 import numbers
 import time
+from typing import Optional
 
-__all__ = ["Pacer"]
+__all__ = ["Pacer", "pacer_for"]
 
 log = logging.getLogger("legslam")
 
 #: A wait longer than this (seconds) is a gap in the recording, said in a warning.
 GAP_S = 5.0
+
+
+def pacer_for(pace: Optional[float], live: bool) -> Optional["Pacer"]:
+    """The Pacer for speed `pace` (None: no pacing). ValueError for a bad speed, and for a
+    live source, which delivers frames at its own pace."""
+    if pace is None:
+        return None
+    if live:
+        raise ValueError("pacing plays a recording read by legslam at its camera's pace; a camera "
+                         "(or the RealSense SDK's playback) delivers frames at its own")
+    return Pacer(pace)
 
 
 class Pacer:

@@ -7,7 +7,7 @@ use pyo3::prelude::*;
 use crate::convert::engine_call;
 
 /// How much lower a background pool's threads run (the nice value they add, Linux).
-pub const BACKGROUND_NICE: i32 = 10;
+const BACKGROUND_NICE: i32 = 10;
 
 /// `None` (rayon's global pool) or a pool of `threads` threads named `{name}-{i}`; with
 /// `background`, its threads yield the CPU to the process's other threads (Linux: nice raised

@@ -12,7 +12,7 @@ from pathlib import Path
 from ..datasets.realsense import RealSenseCamera
 from ..eval import every_key
 from ..pipeline import run as run_pipeline
-from ..playback import Pacer
+from ..playback import pacer_for
 from ..run_folder import RUN_FILES, write_json
 from ..slam import SLAMConfig
 from ..viewer import RerunViewer, ViewerError
@@ -116,14 +116,10 @@ def run_sequence(seq, name: str, args, config: SLAMConfig) -> int:
     """Runs SLAM over `seq` (a Sequence, or a live camera) into --out (default
     legslam-out/NAME) and prints the figures."""
     live = getattr(seq, "live", False)
-    if args.pace is not None:
-        if live:
-            raise UserError("--pace plays a recording read by legslam at its camera's pace; a camera "
-                            "(or the RealSense SDK's playback) delivers frames at its own")
-        try:
-            Pacer(args.pace)
-        except ValueError as e:
-            raise UserError(f"--pace: {e}") from e
+    try:  # checked before --out is made
+        pacer_for(args.pace, live)
+    except ValueError as e:
+        raise UserError(f"--pace: {e}") from e
     out = run_output_dir(args.out or Path("legslam-out") / name, seq.path, args.overwrite)
     viewer = _viewer(args)
     progress = None if args.quiet else Progress(None if live else len(seq))
