@@ -9,7 +9,8 @@
 //! cargo bench -p legslam-core --bench mapper
 //! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
 //! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20),
-//! LEGSLAM_BENCH_PRUNED (0 skips the second map).
+//! LEGSLAM_BENCH_PRUNED (0 skips the second map), LEGSLAM_BENCH_SPARSE_ADAM (set: the mapper
+//! option `adam_sparse`; SLAM's default, and the bench's, is dense Adam).
 
 #[path = "common/mod.rs"]
 mod common;
@@ -98,7 +99,7 @@ fn main() {
         ..Default::default()
     };
     config.grow.stride = 2;
-    config.adam.sparse = std::env::var("LEGSLAM_BENCH_DENSE_ADAM").is_err();
+    config.adam.sparse = std::env::var("LEGSLAM_BENCH_SPARSE_ADAM").is_ok();
     let grow = |config: MapperConfig| {
         let mut mapper = Mapper::new(config).unwrap();
         let intr = Intrinsics::from_array([F, F, 320.0, 240.0], W, H);
