@@ -8,7 +8,7 @@ use super::composite::{composite, TileAcc, TileRect};
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 use super::lanes::Avx2;
 use super::lanes::{Portable, Simd};
-use super::math::{sigmoid, V2, V3};
+use super::math::{ceil_in, floor_end_in, sigmoid, V2, V3};
 use super::project::{coarser, color_raw, extent, extent_bound, geometry, Pinhole};
 use super::tiles::{bin, rect, rect_area, Bins, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
@@ -56,8 +56,8 @@ fn clip(lo: u32, hi: u32, start: usize, end: usize) -> std::ops::Range<usize> {
 /// The integer coordinates in [c - e, c + e], clipped to [0, size), as [first, end).
 #[inline]
 fn pixel_span(c: Real, e: Real, size: usize) -> [u32; 2] {
-    let first = (c - e).ceil().max(0.0).min(size as Real) as u32;
-    let end = ((c + e).floor() + 1.0).max(0.0).min(size as Real) as u32;
+    let first = ceil_in(c - e, size) as u32;
+    let end = floor_end_in(c + e, size) as u32;
     [first, end.max(first)]
 }
 
@@ -294,7 +294,7 @@ fn project_all(
         ..*cfg
     };
     radii.resize(g.len(), 0.0);
-    let splat_at = |xy: V2, conic: V3, ext: V2, (w, h): (usize, usize), opacity: Real| Splat {
+    let splat_at = |xy: V2, conic: V3, ext: V2, (w, h): (usize, usize), opacity, level| Splat {
         xy,
         conic,
         opacity,
@@ -304,7 +304,7 @@ fn project_all(
             let ([x0, x1], [y0, y1]) = (pixel_span(xy.x, ext.x, w), pixel_span(xy.y, ext.y, h));
             [x0, y0, x1, y1]
         },
-        sigma_max: (opacity / cfg.alpha_min).ln(),
+        sigma_max: level,
     };
     let project_one = |i: usize,
                        (splat, rect, radius): (&mut Splat, &mut Rect, &mut Real),
@@ -316,22 +316,24 @@ fn project_all(
             (s, r)
         });
         let opacity = sigmoid(g.opacity_logits[i]);
+        // ln(opacity / alpha_min), once: where sigma exceeds it, alpha is below the cut-off.
+        let level = (opacity / cfg.alpha_min).ln();
         // Most of a large map lies outside any one view: rule those out before the full
         // projection.
-        match extent_bound(g, i, cam, &pin, opacity, &bound_cfg) {
+        match extent_bound(g, i, cam, &pin, level, &bound_cfg) {
             Some((xy, e)) if rect_area(&rect_of(&grid, xy, e)) > 0 => {}
             _ => return,
         }
         let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
             return;
         };
-        let Some(ext) = extent(geo.cov2d, opacity, cfg) else {
+        let Some(ext) = extent(geo.cov2d, level) else {
             return;
         };
         let r = rect_of(&grid, geo.xy, ext);
         let low = coarse.and_then(|s| {
             let (xy, conic, cov2d) = coarser(&geo, s as Real, cfg)?;
-            let ext = extent(cov2d, opacity, cfg)?;
+            let ext = extent(cov2d, level)?;
             Some((xy, conic, ext, rect_of(&low_grid, xy, ext)))
         });
         let low_area = low.map_or(0, |l| rect_area(&l.3));
@@ -345,7 +347,7 @@ fn project_all(
             } else {
                 V3::ZERO
             },
-            ..splat_at(geo.xy, geo.conic, ext, size, opacity)
+            ..splat_at(geo.xy, geo.conic, ext, size, opacity, level)
         };
         *rect = r;
         *radius = if rect_area(&r) > 0 {
@@ -356,7 +358,7 @@ fn project_all(
         if let (Some((xy, conic, ext, lr)), Some((ls, lrect))) = (low, low_out) {
             *ls = Splat {
                 depth: geo.p_cam.z,
-                ..splat_at(xy, conic, ext, low_size, opacity)
+                ..splat_at(xy, conic, ext, low_size, opacity, level)
             };
             *lrect = lr;
         }

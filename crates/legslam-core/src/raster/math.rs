@@ -67,3 +67,90 @@ pub fn quat_to_mat_vjp(w: Real, x: Real, y: Real, z: Real, g: &M3) -> [Real; 4] 
 pub fn sigmoid(x: Real) -> Real {
     1.0 / (1.0 + (-x).exp())
 }
+
+// Rounding to pixel and tile indices by integer conversion: x86-64 without SSE4.1 (the
+// portable wheel's target) calls `floorf` and `ceilf` out of line, and projecting a Gaussian
+// rounds up to twenty times. Each gives exactly what the float expression in its comment gives
+// (NaN and infinities included) for any `n` up to 2^24, where float integers are exact, tested
+// below.
+
+/// `v.floor().max(0.0).min(n as Real) as usize`.
+#[inline]
+pub fn floor_in(v: Real, n: usize) -> usize {
+    // A non-negative value truncates to its floor; `as` saturates (and takes NaN to 0).
+    (v.max(0.0) as usize).min(n)
+}
+
+/// `(v.floor() + 1.0).max(0.0).min(n as Real) as usize`: the end of a range whose last entry
+/// is `floor(v)`.
+#[inline]
+pub fn floor_end_in(v: Real, n: usize) -> usize {
+    if v >= 0.0 {
+        (floor_in(v, n) + 1).min(n)
+    } else {
+        0
+    }
+}
+
+/// `v.ceil().max(0.0).min(n as Real) as usize`.
+#[inline]
+pub fn ceil_in(v: Real, n: usize) -> usize {
+    if v > 0.0 {
+        let t = v as usize;
+        t.saturating_add(usize::from((t as Real) < v)).min(n)
+    } else {
+        0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    #[test]
+    fn integer_rounding_gives_the_float_expressions() {
+        let mut rng = Rng::new(9);
+        let mut values: Vec<Real> = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            -1.5,
+            2.999_999,
+            3.0,
+            15.0,
+            16.0,
+            16.000_002,
+            1e7,
+            16_777_217.0,
+            1e20,
+            -1e20,
+            Real::MAX,
+            Real::MIN,
+            Real::INFINITY,
+            Real::NEG_INFINITY,
+            Real::NAN,
+            Real::MIN_POSITIVE,
+        ];
+        values.extend((0..20_000).map(|i| match i % 3 {
+            0 => rng.uniform(-40.0, 700.0) as Real,
+            1 => rng.uniform(-3.0, 3.0).round() as Real,
+            _ => (rng.uniform(-8.0, 80.0) as Real / 16.0).round() * 16.0,
+        }));
+        for &v in &values {
+            for n in [0, 1, 40, 640, 1 << 24] {
+                let want = |x: Real| x.max(0.0).min(n as Real) as usize;
+                assert_eq!(floor_in(v, n), want(v.floor()), "floor {v} in {n}");
+                assert_eq!(
+                    floor_end_in(v, n),
+                    want(v.floor() + 1.0),
+                    "floor + 1 {v} in {n}"
+                );
+                assert_eq!(ceil_in(v, n), want(v.ceil()), "ceil {v} in {n}");
+            }
+        }
+    }
+}

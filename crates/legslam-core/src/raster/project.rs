@@ -126,17 +126,17 @@ pub(crate) fn geometry(
 }
 
 /// The centre (pixels) and half extents that bound what [`geometry`] and [`extent`] would give
-/// Gaussian `i` at `opacity`, from its centre and largest scale alone (`None` where
-/// `geometry` culls by depth): a cheap test that skips the full projection of Gaussians that
-/// cannot reach the image. The Jacobian's rows have norm (f / z) sqrt(1 + s^2), and the 3D
-/// covariance's largest eigenvalue is the largest scale squared.
+/// Gaussian `i` at `level` = ln(opacity / alpha_min), from its centre and largest scale alone
+/// (`None` where `geometry` culls by depth): a cheap test that skips the full projection of
+/// Gaussians that cannot reach the image. The Jacobian's rows have norm (f / z) sqrt(1 + s^2),
+/// and the 3D covariance's largest eigenvalue is the largest scale squared.
 #[inline]
 pub(crate) fn extent_bound(
     g: &Gaussians,
     i: usize,
     cam: &Camera,
     pin: &Pinhole,
-    opacity: Real,
+    level: Real,
     cfg: &RasterConfig,
 ) -> Option<(V2, V2)> {
     let p = camera_point(g, i, cam, cfg)?;
@@ -146,7 +146,7 @@ pub(crate) fn extent_bound(
     let (tx, ty) = (p.x / z, p.y / z);
     let sx = tx.clamp(pin.lim_x.0, pin.lim_x.1);
     let sy = ty.clamp(pin.lim_y.0, pin.lim_y.1);
-    let level = (opacity / cfg.alpha_min).ln().max(0.0);
+    let level = level.max(0.0);
     // Slack well above rounding, so that the bound never falls below the exact extent.
     let half = |f: Real, s: Real| {
         let var = (f / z) * (f / z) * (1.0 + s * s) * s2 + cfg.dilation;
@@ -160,10 +160,9 @@ pub(crate) fn extent_bound(
 
 /// Half extents (x, y) in pixels of the region where a Gaussian of 2D covariance `cov2d`
 /// (xx, xy, yy) has alpha at least `alpha_min`: the bounding box of the ellipse
-/// `0.5 d^T conic d <= ln(opacity / alpha_min)`.
+/// `0.5 d^T conic d <= level`, `level` = ln(opacity / alpha_min).
 #[inline]
-pub(crate) fn extent(cov2d: V3, opacity: Real, cfg: &RasterConfig) -> Option<V2> {
-    let level = (opacity / cfg.alpha_min).ln();
+pub(crate) fn extent(cov2d: V3, level: Real) -> Option<V2> {
     if !(level > 0.0) {
         return None;
     }
@@ -458,12 +457,12 @@ mod tests {
         let pin = Pinhole::new(&cam, &cfg);
         let mut kept = 0;
         for (i, &logit) in logits.iter().enumerate() {
-            let opacity = sigmoid(logit);
+            let level = (sigmoid(logit) / cfg.alpha_min).ln();
             let exact = geometry(&g, i, &cam, &pin, &cfg)
-                .and_then(|geo| extent(geo.cov2d, opacity, &cfg).map(|e| (geo.xy, e)));
+                .and_then(|geo| extent(geo.cov2d, level).map(|e| (geo.xy, e)));
             let Some((xy, e)) = exact else { continue };
             kept += 1;
-            let (bxy, be) = extent_bound(&g, i, &cam, &pin, opacity, &cfg)
+            let (bxy, be) = extent_bound(&g, i, &cam, &pin, level, &cfg)
                 .unwrap_or_else(|| panic!("Gaussian {i}: projected, but the bound culls it"));
             assert_eq!(bxy, xy, "Gaussian {i}: centre");
             for (lo_b, hi_b, lo, hi) in [

@@ -5,6 +5,7 @@ use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use rayon::prelude::*;
 
 use super::forward::Splat;
+use super::math::{floor_end_in, floor_in};
 use super::TILE;
 use crate::Real;
 
@@ -35,8 +36,8 @@ pub(crate) type Rect = [u32; 4];
 #[inline]
 pub(crate) fn rect(grid: &Grid, x: Real, y: Real, ex: Real, ey: Real) -> Rect {
     let t = TILE as Real;
-    let lo = |v: Real, n: usize| ((v / t).floor().max(0.0) as usize).min(n) as u32;
-    let hi = |v: Real, n: usize| (((v / t).floor() + 1.0).max(0.0) as usize).min(n) as u32;
+    let lo = |v: Real, n: usize| floor_in(v / t, n) as u32;
+    let hi = |v: Real, n: usize| floor_end_in(v / t, n) as u32;
     [
         lo(x - ex, grid.tiles_x),
         lo(y - ey, grid.tiles_y),
