@@ -77,8 +77,8 @@ pub fn sigmoid(x: Real) -> Real {
 /// `v.floor().max(0.0).min(n as Real) as usize`.
 #[inline]
 pub fn floor_in(v: Real, n: usize) -> usize {
-    // A non-negative value truncates to its floor; `as` saturates (and takes NaN to 0).
-    (v.max(0.0) as usize).min(n)
+    // `as` truncates a non-negative value to its floor, and takes a negative one or NaN to 0.
+    (v as usize).min(n)
 }
 
 /// `(v.floor() + 1.0).max(0.0).min(n as Real) as usize`: the end of a range whose last entry
@@ -95,12 +95,8 @@ pub fn floor_end_in(v: Real, n: usize) -> usize {
 /// `v.ceil().max(0.0).min(n as Real) as usize`.
 #[inline]
 pub fn ceil_in(v: Real, n: usize) -> usize {
-    if v > 0.0 {
-        let t = v as usize;
-        t.saturating_add(usize::from((t as Real) < v)).min(n)
-    } else {
-        0
-    }
+    let t = v as usize;
+    t.saturating_add(usize::from((t as Real) < v)).min(n)
 }
 
 #[cfg(test)]
