@@ -284,11 +284,10 @@ impl Adam {
                     }
                     // Row by row, skipping those whose gradient is exactly zero.
                     let mut update = |r: usize| {
-                        let at = r * w;
-                        let g = &g[at..at + w];
+                        let row = r * w..(r + 1) * w;
+                        let g = &g[row.clone()];
                         if g.iter().any(|&x| x != 0.0) {
-                            let (p, m, v) = (&mut p[at..], &mut m[at..], &mut v[at..]);
-                            k.update(&mut p[..w], &mut m[..w], &mut v[..w], g);
+                            k.update(&mut p[row.clone()], &mut m[row.clone()], &mut v[row], g);
                         }
                     };
                     let first = ci * ROWS_PER_TASK;
