@@ -247,7 +247,12 @@ pub(crate) fn composite<L: Lanes>(
         prefetch_ahead(list, j, splats, features, k);
         let s = &splats[gi as usize];
         let f = &features[gi as usize * k..][..k];
-        let color = s.color.to_array().map(L::splat);
+        // Not `array::map`, which is not always inlined into the AVX2 kernel (see `walk_tile`).
+        let color = [
+            L::splat(s.color.x),
+            L::splat(s.color.y),
+            L::splat(s.color.z),
+        ];
         let depth = L::splat(s.depth);
         for_each_group(s, r, |g| {
             let lp = g.lp;

@@ -424,7 +424,10 @@ mod avx2 {
                 );
                 let mut out = [0.0; 8];
                 _mm256_storeu_ps(out.as_mut_ptr(), sums);
-                [0, 4, 1, 5, 2, 6, 3, 7].map(|i| out[i])
+                // Spelt out: `array::map` would be a call, with bounds checks, per pair.
+                [
+                    out[0], out[4], out[1], out[5], out[2], out[6], out[3], out[7],
+                ]
             }
         }
         #[inline(always)]
