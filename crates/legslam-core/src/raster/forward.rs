@@ -9,7 +9,7 @@ use super::composite::{composite, TileAcc, TileRect};
 use super::lanes::Avx2;
 use super::lanes::{Portable, Simd};
 use super::math::{ceil_in, floor_end_in, sigmoid, V2, V3};
-use super::project::{coarser, color_raw, extent, extent_bound, geometry, Pinhole};
+use super::project::{coarser, color_raw, cutoff_level, extent, extent_bound, geometry, Pinhole};
 use super::tiles::{bin, rect, rect_area, Bins, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
 use crate::Real;
@@ -316,8 +316,8 @@ fn project_all(
             (s, r)
         });
         let opacity = sigmoid(g.opacity_logits[i]);
-        // ln(opacity / alpha_min), once: where sigma exceeds it, alpha is below the cut-off.
-        let level = (opacity / cfg.alpha_min).ln();
+        // Once a Gaussian: the bound, both extents and the splats' sigma_max use it.
+        let level = cutoff_level(opacity, cfg);
         // Most of a large map lies outside any one view: rule those out before the full
         // projection.
         match extent_bound(g, i, cam, &pin, level, &bound_cfg) {

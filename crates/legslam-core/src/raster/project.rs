@@ -125,8 +125,15 @@ pub(crate) fn geometry(
     })
 }
 
+/// ln(opacity / alpha_min): the largest sigma (the exponent `0.5 d^T conic d`) at which a
+/// Gaussian of this opacity still reaches the alpha cut-off.
+#[inline]
+pub(crate) fn cutoff_level(opacity: Real, cfg: &RasterConfig) -> Real {
+    (opacity / cfg.alpha_min).ln()
+}
+
 /// The centre (pixels) and half extents that bound what [`geometry`] and [`extent`] would give
-/// Gaussian `i` at `level` = ln(opacity / alpha_min), from its centre and largest scale alone
+/// Gaussian `i` at `level` ([`cutoff_level`]), from its centre and largest scale alone
 /// (`None` where `geometry` culls by depth): a cheap test that skips the full projection of
 /// Gaussians that cannot reach the image. The Jacobian's rows have norm (f / z) sqrt(1 + s^2),
 /// and the 3D covariance's largest eigenvalue is the largest scale squared.
@@ -160,7 +167,7 @@ pub(crate) fn extent_bound(
 
 /// Half extents (x, y) in pixels of the region where a Gaussian of 2D covariance `cov2d`
 /// (xx, xy, yy) has alpha at least `alpha_min`: the bounding box of the ellipse
-/// `0.5 d^T conic d <= level`, `level` = ln(opacity / alpha_min).
+/// `0.5 d^T conic d <= level` ([`cutoff_level`]).
 #[inline]
 pub(crate) fn extent(cov2d: V3, level: Real) -> Option<V2> {
     if !(level > 0.0) {
@@ -457,7 +464,7 @@ mod tests {
         let pin = Pinhole::new(&cam, &cfg);
         let mut kept = 0;
         for (i, &logit) in logits.iter().enumerate() {
-            let level = (sigmoid(logit) / cfg.alpha_min).ln();
+            let level = cutoff_level(sigmoid(logit), &cfg);
             let exact = geometry(&g, i, &cam, &pin, &cfg)
                 .and_then(|geo| extent(geo.cov2d, level).map(|e| (geo.xy, e)));
             let Some((xy, e)) = exact else { continue };
