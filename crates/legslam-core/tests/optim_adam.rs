@@ -271,6 +271,46 @@ fn matches_reference_through_appends_prunes_and_gathers() {
     run_scenario(false, 2500);
 }
 
+/// Dense Adam told which rows can have a gradient ignores the others' values (a reused
+/// gradient buffer leaves them stale) and gives the bits of a step whose other rows are zero:
+/// runs and gaps of every length, across parallel tasks, a wide group crossing the pieces of
+/// zeros it is fed in.
+#[test]
+fn dense_listed_rows_equal_zeros_elsewhere() {
+    let n = 2500;
+    let widths = [3, 3, 4, 1, 48, 100];
+    let mut rng = Rng::new(23);
+    let mut a = Adam::new(AdamConfig::default(), n, 16, 100).unwrap();
+    let mut b = a.clone();
+    let init: [Vec<Real>; 6] = widths.map(|w| (0..n * w).map(|_| rng.normal() as Real).collect());
+    let (mut pa, mut pb) = (init.clone(), init);
+    for step in 0..4 {
+        // Runs of listed rows of random lengths, with gaps of random lengths (some long).
+        let mut listed = Vec::new();
+        let mut r = 0;
+        while r < n {
+            let run = 1 + rng.below(if step % 2 == 0 { 5 } else { 300 });
+            listed.extend((r..(r + run).min(n)).map(|i| i as u32));
+            r += run + rng.below(if step < 2 { 4 } else { 2000 });
+        }
+        let garbage: [Vec<Real>; 6] =
+            widths.map(|w| (0..n * w).map(|_| rng.normal() as Real).collect());
+        let mut zeroed = garbage.clone();
+        for (z, w) in zeroed.iter_mut().zip(widths) {
+            for i in 0..n {
+                if listed.binary_search(&(i as u32)).is_err() {
+                    z[i * w..(i + 1) * w].fill(0.0);
+                }
+            }
+        }
+        a.step_rows(borrow(&mut pa), view(&garbage), Some(&listed))
+            .unwrap();
+        b.step(borrow(&mut pb), view(&zeroed)).unwrap();
+        assert_eq!(pa, pb, "step {step}");
+    }
+    assert_eq!(a.moments(), b.moments());
+}
+
 #[test]
 fn sparse_matches_reference_and_leaves_zero_rows_alone() {
     run_scenario(true, 50);

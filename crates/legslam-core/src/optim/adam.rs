@@ -13,6 +13,26 @@ use crate::Real;
 /// Rows per parallel task: big enough to amortise scheduling, small enough to balance.
 const ROWS_PER_TASK: usize = 1024;
 
+/// The gradient of values that have none, a piece at a time.
+static ZEROS: [Real; 4096] = [0.0; 4096];
+
+/// Consecutive rows of one group: parameters, moments and gradients.
+struct Chunk<'a> {
+    p: &'a mut [Real],
+    m: &'a mut [Real],
+    v: &'a mut [Real],
+    g: &'a [Real],
+}
+
+/// The rows of a [`Chunk`] of `width`-value rows that can have a non-zero gradient: `rows`
+/// (sorted), numbered from `first`.
+#[derive(Clone, Copy)]
+struct Listed<'a> {
+    width: usize,
+    rows: &'a [u32],
+    first: usize,
+}
+
 /// One group's constants for one step.
 #[derive(Clone, Copy, Debug)]
 struct Step {
@@ -47,6 +67,67 @@ impl Step {
         }
         let _ = avx2;
         self.update(p, m, v, g)
+    }
+
+    /// [`Step::update_fast`] over the rows of `c`, of which only `rows` can have a non-zero
+    /// gradient: runs of listed rows read theirs, the runs between them update with zeros
+    /// instead of reading gradients that are zero (or stale).
+    fn update_listed(&self, avx2: bool, rows: Listed, c: Chunk) {
+        #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+        if avx2 {
+            // SAFETY: the caller checked that the CPU has AVX2.
+            return unsafe { self.update_listed_avx2(rows, c) };
+        }
+        let _ = avx2;
+        self.listed_runs(rows, c)
+    }
+
+    /// [`Step::update_listed`] compiled with AVX2: one call for all of a chunk's runs (a view's
+    /// rows come in runs of ~8, too short to pay a call each).
+    ///
+    /// # Safety
+    /// The CPU must support AVX2.
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    #[target_feature(enable = "avx2")]
+    unsafe fn update_listed_avx2(&self, rows: Listed, c: Chunk) {
+        self.listed_runs(rows, c)
+    }
+
+    /// The body of [`Step::update_listed`], inlined into the portable and the AVX2 entry.
+    #[inline(always)]
+    fn listed_runs(&self, rows: Listed, c: Chunk) {
+        let Listed {
+            width: w,
+            rows: listed,
+            first,
+        } = rows;
+        let Chunk { p, m, v, g } = c;
+        let n = g.len() / w;
+        // Values [a, b) with gradients `g` (values update independently of each other).
+        let mut run = |a: usize, b: usize, g: &[Real]| {
+            self.update(&mut p[a..b], &mut m[a..b], &mut v[a..b], g);
+        };
+        let (mut at, mut next) = (0, 0);
+        while at < n {
+            let listed_at = listed.get(next).map_or(n, |&r| r as usize - first);
+            let end = if listed_at > at {
+                for a in (at * w..listed_at * w).step_by(ZEROS.len()) {
+                    let b = (a + ZEROS.len()).min(listed_at * w);
+                    run(a, b, &ZEROS[..b - a]);
+                }
+                listed_at
+            } else {
+                let mut end = at + 1;
+                next += 1;
+                while listed.get(next).is_some_and(|&r| r as usize - first == end) {
+                    end += 1;
+                    next += 1;
+                }
+                run(at * w, end * w, &g[at * w..end * w]);
+                end
+            };
+            at = end;
+        }
     }
 
     /// [`Step::update`] compiled with AVX2.
@@ -226,7 +307,9 @@ impl Adam {
     }
 
     /// [`Adam::step`], told that only the sorted rows `rows` can have a non-zero gradient (a
-    /// render's visible Gaussians): sparse Adam then visits only those, dense Adam every row.
+    /// render's visible Gaussians): sparse Adam then visits only those, dense Adam every row,
+    /// with zeros for the others' gradients (which it does not read: a reused buffer's
+    /// off-screen rows may be stale, see `Gradients::rows`).
     pub fn step_rows(
         &mut self,
         params: Groups<&mut [Real]>,
@@ -251,7 +334,6 @@ impl Adam {
                 self.len
             ));
         }
-        let rows = rows.filter(|_| self.config.sparse);
         let lrs = self.learning_rates().into_array();
         self.steps += 1;
         let c = self.config;
@@ -278,9 +360,21 @@ impl Adam {
                 .zip(g.par_chunks(chunk))
                 .enumerate()
                 .for_each(|(ci, (((p, m), v), g))| {
+                    let first = ci * ROWS_PER_TASK;
                     if !c.sparse {
-                        // Every value of the chunk in one run, whatever the row width.
-                        return k.update_fast(avx2, p, m, v, g);
+                        return match rows {
+                            // Every value of the chunk in one run, whatever the row width.
+                            None => k.update_fast(avx2, p, m, v, g),
+                            Some(rows) => k.update_listed(
+                                avx2,
+                                Listed {
+                                    width: w,
+                                    rows: rows_in(rows, first, g.len() / w),
+                                    first,
+                                },
+                                Chunk { p, m, v, g },
+                            ),
+                        };
                     }
                     // Row by row, skipping those whose gradient is exactly zero.
                     let mut update = |r: usize| {
@@ -290,7 +384,6 @@ impl Adam {
                             k.update(&mut p[row.clone()], &mut m[row.clone()], &mut v[row], g);
                         }
                     };
-                    let first = ci * ROWS_PER_TASK;
                     match rows {
                         Some(rows) => rows_in(rows, first, g.len() / w)
                             .iter()
@@ -402,6 +495,21 @@ mod tests {
     use super::*;
     use crate::rng::Rng;
 
+    /// A step with 3DGS's betas, some way into training.
+    fn some_step() -> Step {
+        Step {
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-15,
+            step_size: 2.5e-3 / 0.19,
+            inv_bias2_sqrt: 1.0 / (0.002 as Real).sqrt(),
+        }
+    }
+
+    fn bits(x: &[Real]) -> Vec<u64> {
+        x.iter().map(|v| u64::from(v.to_bits())).collect()
+    }
+
     /// The AVX2 update against the plain one, bit for bit, on random moments and gradients
     /// (zeros among them) of lengths that leave every tail (where the CPU has AVX2).
     #[test]
@@ -425,23 +533,79 @@ mod tests {
             };
             let (p, m, g) = (draw(1.0), draw(1e-2), draw(1e-3));
             let v: Vec<Real> = draw(1e-3).iter().map(|x| x * x).collect();
-            let k = Step {
-                beta1: 0.9,
-                beta2: 0.999,
-                eps: 1e-15,
-                step_size: 2.5e-3 / 0.19,
-                inv_bias2_sqrt: 1.0 / (0.002 as Real).sqrt(),
-            };
+            let k = some_step();
             let (mut pa, mut ma, mut va) = (p.clone(), m.clone(), v.clone());
             let (mut pb, mut mb, mut vb) = (p.clone(), m, v);
             k.update(&mut pa, &mut ma, &mut va, &g);
             k.update_fast(true, &mut pb, &mut mb, &mut vb, &g);
-            let bits = |x: &[Real]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&pa), bits(&pb), "parameters, {len} values");
             assert_eq!(bits(&ma), bits(&mb), "first moments, {len} values");
             assert_eq!(bits(&va), bits(&vb), "second moments, {len} values");
             if len > 1 {
                 assert_ne!(bits(&pa), bits(&p), "the update must move the parameters");
+            }
+        }
+    }
+
+    /// Both paths of the listed update against the plain update of every row with the
+    /// unlisted rows' gradients zeroed, bit for bit: those rows' gradients (garbage here) are
+    /// never read, runs and gaps of every length, rows wider than the zeros' piece.
+    #[test]
+    fn listed_rows_give_the_bits_of_zero_gradients_elsewhere() {
+        let mut rng = Rng::new(6);
+        let k = some_step();
+        for w in [1, 3, 48, 5000] {
+            let n = 40;
+            let mut draw =
+                |len: usize| -> Vec<Real> { (0..len).map(|_| rng.normal() as Real).collect() };
+            let (p, m, g) = (draw(n * w), draw(n * w), draw(n * w));
+            let v: Vec<Real> = draw(n * w).iter().map(|x| x * x).collect();
+            // Runs of 1, 2, 3 ... rows with gaps of 1, 2, 3 ..., from row 1 (first = 100).
+            let mut listed = Vec::new();
+            let (mut r, mut len) = (1, 1);
+            while r < n {
+                listed.extend((r..(r + len).min(n)).map(|i| (100 + i) as u32));
+                r += 2 * len;
+                len += 1;
+            }
+            let mut zeroed = g.clone();
+            for i in 0..n {
+                if !listed.contains(&((100 + i) as u32)) {
+                    zeroed[i * w..(i + 1) * w].fill(0.0);
+                }
+            }
+            let (mut pa, mut ma, mut va) = (p.clone(), m.clone(), v.clone());
+            k.update(&mut pa, &mut ma, &mut va, &zeroed);
+            let paths = if crate::raster::avx2_available() {
+                vec![false, true]
+            } else {
+                vec![false]
+            };
+            for avx2 in paths {
+                let (mut pb, mut mb, mut vb) = (p.clone(), m.clone(), v.clone());
+                let rows = Listed {
+                    width: w,
+                    rows: &listed,
+                    first: 100,
+                };
+                let c = Chunk {
+                    p: &mut pb,
+                    m: &mut mb,
+                    v: &mut vb,
+                    g: &g,
+                };
+                k.update_listed(avx2, rows, c);
+                assert_eq!(bits(&pa), bits(&pb), "parameters, width {w}, avx2 {avx2}");
+                assert_eq!(
+                    bits(&ma),
+                    bits(&mb),
+                    "first moments, width {w}, avx2 {avx2}"
+                );
+                assert_eq!(
+                    bits(&va),
+                    bits(&vb),
+                    "second moments, width {w}, avx2 {avx2}"
+                );
             }
         }
     }

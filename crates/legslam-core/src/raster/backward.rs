@@ -158,23 +158,15 @@ pub fn backward_into(
     // The layers this pass walked: the main one, and the features' own when coarser.
     let layers_walked = 1 + usize::from(coarse);
 
-    // Only the rows of Gaussians on screen can be non-zero: clear the rows the last pass
-    // touched (or everything, when the map changed size) instead of the whole map's.
+    // Only the rows of Gaussians on screen are written (every value of each); the others keep
+    // what they held, stale (zeros in new arrays): no pass reads them (see `Gradients::rows`),
+    // and clearing them cost more than a tenth of the backward.
     let n = g.len();
     let nc = g.sh_coeffs * 3;
     let kf = g.num_features;
     let widths = [3, 3, 4, 1, nc, kf, 2, 1];
-    let mut stale = std::mem::take(&mut out.rows);
-    if out
-        .arrays_mut()
-        .iter()
-        .zip(widths)
-        .any(|(v, w)| v.len() != n * w)
-    {
-        for (v, w) in out.arrays_mut().into_iter().zip(widths) {
-            zeroed(v, n * w);
-        }
-        stale.clear();
+    for (v, w) in out.arrays_mut().into_iter().zip(widths) {
+        v.resize(n * w, 0.0);
     }
     let on_screen = |i: usize| {
         layers
@@ -201,22 +193,6 @@ pub fn backward_into(
         .into_par_iter()
         .map(|(c, (((((((gm, gs), gq), go), gsh), gfeat), gm2), gw))| {
             let first = c * CHUNK;
-            for &i in rows_in(&stale, first, CHUNK) {
-                let li = i as usize - first;
-                let parts: [(&mut [Real], usize); 8] = [
-                    (gm, 3),
-                    (gs, 3),
-                    (gq, 4),
-                    (go, 1),
-                    (gsh, nc),
-                    (gfeat, kf),
-                    (gm2, 2),
-                    (gw, 1),
-                ];
-                for (v, w) in parts {
-                    v[li * w..(li + 1) * w].fill(0.0);
-                }
-            }
             let mut pose = [0.0; 6];
             let mine = rows_in(&rows, first, CHUNK);
             for (at, &i) in mine.iter().enumerate() {
@@ -232,6 +208,8 @@ pub fn backward_into(
                 // Each layer's pairs, in tile order, so that the sums are deterministic.
                 let mut sums = [ScreenGrads::default(); 2];
                 let mut weight = 0.0;
+                let feat_row = &mut gfeat[li * kf..][..kf];
+                feat_row.fill(0.0);
                 for (l, sg) in sums.iter_mut().enumerate().take(layers_walked) {
                     let ls = layer_scratch[l];
                     let stride = strides[l];
@@ -246,7 +224,7 @@ pub fn backward_into(
                         if l == 0 {
                             weight += s[slot::WEIGHT];
                         }
-                        for (o, v) in gfeat[li * kf..][..kf].iter_mut().zip(&s[SLOTS..]) {
+                        for (o, v) in feat_row.iter_mut().zip(&s[SLOTS..]) {
                             *o += v;
                         }
                     }
@@ -266,6 +244,12 @@ pub fn backward_into(
                     sg.cov += V3::new(gc[0][0], gc[0][1], gc[1][1]) / s2;
                 }
                 let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
+                    // Not reached (the render projected it from the same inputs), but its rows
+                    // must be written all the same.
+                    for (v, w) in [(&mut *gm, 3), (&mut *gs, 3), (&mut *gq, 4), (&mut *gsh, nc)] {
+                        v[li * w..(li + 1) * w].fill(0.0);
+                    }
+                    go[li] = 0.0;
                     continue;
                 };
                 let part = backward_one(
@@ -570,11 +554,4 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
             *o = v.hsum();
         }
     }
-}
-
-/// Makes `v` hold `len` zeros, reusing its allocation.
-fn zeroed(v: &mut Vec<Real>, len: usize) {
-    v.truncate(len);
-    v.par_chunks_mut(1 << 16).for_each(|c| c.fill(0.0));
-    v.resize(len, 0.0);
 }

@@ -238,7 +238,9 @@ pub struct Gradients {
     /// [N] not a gradient: each Gaussian's blending weights alpha * T summed over the main
     /// layer's pixels, how much of the image it makes (pruning removes what makes nothing).
     pub contribution: Vec<Real>,
-    /// The Gaussians on screen, in order: every other Gaussian's rows are zero in every group.
+    /// The Gaussians on screen, in order: the rows the pass wrote. The others are zero in a
+    /// fresh `Gradients`; [`backward_into`] leaves them as the last pass did (stale), for
+    /// callers that read only these rows, as `Adam::step_rows` does.
     pub rows: Vec<u32>,
 }
 
