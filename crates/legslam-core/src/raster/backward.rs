@@ -95,7 +95,9 @@ pub fn backward(
     Ok(out)
 }
 
-/// [`backward`] into `out` (overwritten), with buffers reused from `scratch`.
+/// [`backward`] into `out`, with buffers reused from `scratch`: the rows of the Gaussians on
+/// screen (`out.rows`) and the pose gradient are overwritten, the other rows keep what the last
+/// call left there (zeros where `out` is new or the map grew).
 pub fn backward_into(
     g: &Gaussians,
     cam: &Camera,
@@ -160,7 +162,7 @@ pub fn backward_into(
 
     // Only the rows of Gaussians on screen are written (every value of each); the others keep
     // what they held, stale (zeros in new arrays): no pass reads them (see `Gradients::rows`),
-    // and clearing them cost more than a tenth of the backward.
+    // and clearing them cost 4-6% of the mapper bench's backward.
     let n = g.len();
     let nc = g.sh_coeffs * 3;
     let kf = g.num_features;
