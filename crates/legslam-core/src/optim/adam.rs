@@ -56,52 +56,46 @@ impl Step {
         }
     }
 
-    /// [`Step::update`] with AVX2 where `avx2` says the CPU has it: eight values at a time
-    /// instead of four, through the square root and the division. The same IEEE operations on
-    /// each value (no fused multiply-add), so the same bits.
-    fn update_fast(&self, avx2: bool, p: &mut [Real], m: &mut [Real], v: &mut [Real], g: &[Real]) {
+    /// [`Step::update`] over the values of `c`, with AVX2 where `avx2` says the CPU has it:
+    /// eight values at a time instead of four, through the square root and the division. The
+    /// same IEEE operations on each value (no fused multiply-add), so the same bits. With
+    /// `listed`, only those rows can have a non-zero gradient: runs of listed rows read theirs,
+    /// the runs between them update with zeros instead of reading gradients that are zero (or
+    /// stale).
+    fn update_fast(&self, avx2: bool, listed: Option<Listed>, c: Chunk) {
         #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
         if avx2 {
             // SAFETY: the caller checked that the CPU has AVX2.
-            return unsafe { self.update_avx2(p, m, v, g) };
+            return unsafe { self.update_avx2(listed, c) };
         }
         let _ = avx2;
-        self.update(p, m, v, g)
+        self.update_chunk(listed, c)
     }
 
-    /// [`Step::update_fast`] over the rows of `c`, of which only `rows` can have a non-zero
-    /// gradient: runs of listed rows read theirs, the runs between them update with zeros
-    /// instead of reading gradients that are zero (or stale).
-    fn update_listed(&self, avx2: bool, rows: Listed, c: Chunk) {
-        #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-        if avx2 {
-            // SAFETY: the caller checked that the CPU has AVX2.
-            return unsafe { self.update_listed_avx2(rows, c) };
-        }
-        let _ = avx2;
-        self.listed_runs(rows, c)
-    }
-
-    /// [`Step::update_listed`] compiled with AVX2: one call for all of a chunk's runs (a view's
-    /// rows come in runs of ~8, too short to pay a call each).
+    /// [`Step::update_fast`] compiled with AVX2: one call for a whole chunk, all its runs
+    /// included (a view's rows come in runs of ~8, too short to pay a call each).
     ///
     /// # Safety
     /// The CPU must support AVX2.
     #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
     #[target_feature(enable = "avx2")]
-    unsafe fn update_listed_avx2(&self, rows: Listed, c: Chunk) {
-        self.listed_runs(rows, c)
+    unsafe fn update_avx2(&self, listed: Option<Listed>, c: Chunk) {
+        self.update_chunk(listed, c)
     }
 
-    /// The body of [`Step::update_listed`], inlined into the portable and the AVX2 entry.
+    /// The body of [`Step::update_fast`], inlined into the portable and the AVX2 entry.
     #[inline(always)]
-    fn listed_runs(&self, rows: Listed, c: Chunk) {
-        let Listed {
+    fn update_chunk(&self, listed: Option<Listed>, c: Chunk) {
+        let Chunk { p, m, v, g } = c;
+        let Some(Listed {
             width: w,
             rows: listed,
             first,
-        } = rows;
-        let Chunk { p, m, v, g } = c;
+        }) = listed
+        else {
+            // Every value of the chunk in one run, whatever the row width.
+            return self.update(p, m, v, g);
+        };
         let n = g.len() / w;
         // Values [a, b) with gradients `g` (values update independently of each other).
         let mut run = |a: usize, b: usize, g: &[Real]| {
@@ -128,16 +122,6 @@ impl Step {
             };
             at = end;
         }
-    }
-
-    /// [`Step::update`] compiled with AVX2.
-    ///
-    /// # Safety
-    /// The CPU must support AVX2.
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    #[target_feature(enable = "avx2")]
-    unsafe fn update_avx2(&self, p: &mut [Real], m: &mut [Real], v: &mut [Real], g: &[Real]) {
-        self.update(p, m, v, g)
     }
 }
 
@@ -362,19 +346,12 @@ impl Adam {
                 .for_each(|(ci, (((p, m), v), g))| {
                     let first = ci * ROWS_PER_TASK;
                     if !c.sparse {
-                        return match rows {
-                            // Every value of the chunk in one run, whatever the row width.
-                            None => k.update_fast(avx2, p, m, v, g),
-                            Some(rows) => k.update_listed(
-                                avx2,
-                                Listed {
-                                    width: w,
-                                    rows: rows_in(rows, first, g.len() / w),
-                                    first,
-                                },
-                                Chunk { p, m, v, g },
-                            ),
-                        };
+                        let listed = rows.map(|rows| Listed {
+                            width: w,
+                            rows: rows_in(rows, first, g.len() / w),
+                            first,
+                        });
+                        return k.update_fast(avx2, listed, Chunk { p, m, v, g });
                     }
                     // Row by row, skipping those whose gradient is exactly zero.
                     let mut update = |r: usize| {
@@ -537,7 +514,13 @@ mod tests {
             let (mut pa, mut ma, mut va) = (p.clone(), m.clone(), v.clone());
             let (mut pb, mut mb, mut vb) = (p.clone(), m, v);
             k.update(&mut pa, &mut ma, &mut va, &g);
-            k.update_fast(true, &mut pb, &mut mb, &mut vb, &g);
+            let c = Chunk {
+                p: &mut pb,
+                m: &mut mb,
+                v: &mut vb,
+                g: &g,
+            };
+            k.update_fast(true, None, c);
             assert_eq!(bits(&pa), bits(&pb), "parameters, {len} values");
             assert_eq!(bits(&ma), bits(&mb), "first moments, {len} values");
             assert_eq!(bits(&va), bits(&vb), "second moments, {len} values");
@@ -594,7 +577,7 @@ mod tests {
                     v: &mut vb,
                     g: &g,
                 };
-                k.update_listed(avx2, rows, c);
+                k.update_fast(avx2, Some(rows), c);
                 assert_eq!(bits(&pa), bits(&pb), "parameters, width {w}, avx2 {avx2}");
                 assert_eq!(
                     bits(&ma),
