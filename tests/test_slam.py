@@ -300,13 +300,44 @@ def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
     f = SLAMConfig().final_lr_factor
     assert f < 1
     np.testing.assert_allclose(scales(final_iters=100), [f ** (k / 4) for k in range(4)], rtol=1e-12)
-    # Real time, by the time spent: from 1 down, never below the factor.
+    # Real time, by the time spent: from the rates the frames trained with down, never below
+    # the factor.
     monkeypatch.setattr(slam_module, "FINAL_BATCH", 2)
-    timed = scales(12, final_iters=0, final_time=0.5, mapping_thread=True, final_lr_factor=0.1)
-    assert len(timed) >= 2 and timed[0] > 0.95, timed
-    assert all(0.1 <= b < a for a, b in zip(timed, timed[1:])), timed
+    for start in (1.0, 3.0):
+        timed = scales(12, final_iters=0, final_time=0.5, mapping_thread=True, final_lr_factor=0.1,
+                       realtime_lr_scale=start)
+        assert len(timed) >= 2 and 0.95 * start < timed[0] <= start, timed
+        assert all(0.1 <= b < a for a, b in zip(timed, timed[1:])), timed
     with pytest.raises(ValueError, match="final_lr_factor"):
         SLAMConfig(final_lr_factor=0.0)
+    with pytest.raises(ValueError, match="realtime_lr_scale"):
+        SLAMConfig(realtime_lr_scale=0.0)
+
+
+def test_the_mapping_thread_trains_at_the_real_time_learning_rates(scene, monkeypatch):
+    import legslam.slam.system as slam_module
+
+    seq = open_dataset(scene)
+    recorded = []
+
+    class Recording(slam_module.ThreadedMapping):
+        def __init__(self, mapper, *args, **kwargs):
+            recorded.append(RecordingMapper(mapper))
+            super().__init__(recorded[-1], *args, **kwargs)
+
+    monkeypatch.setattr(slam_module, "ThreadedMapping", Recording)
+    for scale in (1.0, 2.5):
+        slam = SLAM(SLAMConfig(features=False, mapping_thread=True, final_iters=0, final_time=0.0,
+                               realtime_lr_scale=scale), seq[0].K, 160, 120)
+        for i in range(6):
+            slam.step(seq[i].rgb, seq[i].depth)
+        # The first keyframe, trained a few batches before the thread stops.
+        deadline = time.monotonic() + 60
+        while len(recorded[-1].scales) < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        slam.finish()
+        assert len(recorded[-1].scales) >= 3
+        assert set(recorded[-1].scales) == {scale}
 
 
 def test_synchronous_runs_spend_each_frames_iterations_at_the_end(scene):
@@ -431,7 +462,7 @@ def test_a_failure_in_the_mapping_thread_reaches_the_tracker():
             self.num_gaussians = self.num_keyframes = 1
             return 0, 1
 
-        def train(self, n):
+        def train(self, n, lr_scale=1.0):
             raise ValueError("engine says no")
 
     t = ThreadedMapping(Broken(), np.eye(3), (4, 4))

@@ -199,6 +199,20 @@ class SLAMConfig:
     #: noise 35.09 against 34.07 dB (ATE unchanged in all). Real time, whose map is short of
     #: iterations, gained nothing measurable (within +-0.2 dB).
     final_lr_factor: float = 0.1
+    #: With `mapping_thread`: the Gaussians' learning rates are this many times the mapper's
+    #: (`lr_*`) while frames come in, and the final iterations anneal them from there to
+    #: `final_lr_factor` of the mapper's. A real-time map gets a third of a synchronous one's
+    #: iterations, and larger steps make up part of it (2026-11-27, runs alternating, PSNR
+    #: every 5th frame, means of 1-4 runs): 7-Scenes flat out 23.93 against 23.39 dB, at the
+    #: camera's pace 24.52 against 24.26 dB; the 400-frame Replica render flat out 32.46
+    #: against 32.45 dB, paced 34.12 against 34.21, with Kinect-like noise paced 33.58 against
+    #: 33.53; depth L1 lower (7-Scenes flat out 2.67-2.71 against 2.78-2.86 cm, Replica 1.25-1.38
+    #: against 1.65-1.89) or the same (7-Scenes paced), the features closer to the encoder's.
+    #: 3 gained more on 7-Scenes (24.13 flat out, 24.80 paced) and on the Replica render flat
+    #: out (32.85), but lost 0.5 dB on it paced (33.74), where the map gets more iterations a
+    #: keyframe; 6 lost on both. Synchronous runs lost with 2 (7-Scenes 25.25 against 25.21 dB
+    #: but SSIM 0.835 against 0.847 and ATE 4.02 against 3.81 cm; Replica 35.50 against 35.90).
+    realtime_lr_scale: float = 2.0
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
     #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
     #: time, on a thread pool of its own). Low overlap then makes a keyframe only once the
@@ -409,7 +423,7 @@ _RANGES = {
     "keyframe_overlap": (0.0, 1.0), "keyframe_max_gap": (1, _INF),
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
     "final_iters_per_frame": (0.0, _INF),
-    "final_time": (0.0, _INF), "final_lr_factor": (1e-6, 1.0),
+    "final_time": (0.0, _INF), "final_lr_factor": (1e-6, 1.0), "realtime_lr_scale": (1e-2, 1e2),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (0, _INF),
     "jump_residual_ratio": (1.0, _INF),

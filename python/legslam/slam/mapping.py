@@ -70,12 +70,15 @@ class InlineMapping:
 
 
 class ThreadedMapping:
-    """Mapping in a worker thread, `batch` iterations at a time over the keyframes it has."""
+    """Mapping in a worker thread, `batch` iterations at a time over the keyframes it has,
+    with the Gaussians' learning rates `lr_scale` times the mapper's."""
 
-    def __init__(self, mapper, K_track: np.ndarray, track_size: tuple, batch: int = 2):
+    def __init__(self, mapper, K_track: np.ndarray, track_size: tuple, batch: int = 2,
+                 lr_scale: float = 1.0):
         self._mapper = mapper
         self._K_track, self._track_size = K_track, track_size
         self._batch = batch
+        self._lr_scale = lr_scale
         self._commands: queue.SimpleQueue = queue.SimpleQueue()
         self._lock = threading.Lock()
         self._reference: Optional[tuple] = None  # (pose, render, corrections applied before it)
@@ -186,7 +189,7 @@ class ThreadedMapping:
                 self._drain(wait=0.02 if idle else 0.0)
                 if m.num_keyframes == 0 or m.num_gaussians == 0:
                     continue
-                self.stats.append(m.train(self._batch))
+                self.stats.append(m.train(self._batch, lr_scale=self._lr_scale))
                 self._iterations_since_keyframe += self._batch
                 self._num_gaussians = m.num_gaussians
                 pose, applied = self._reference_pose, self._corrections_applied

@@ -115,7 +115,8 @@ class SLAM:
         self.keyframe_frames: list[int] = []
         self._last_keyframe: Optional[KeyframeView] = None
         self._last_tracked: Optional[View] = None
-        self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch)
+        self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch,
+                                         c.realtime_lr_scale)
                          if c.mapping_thread else self._inline_mapping())
         self._final_stats: list = []
         self._first_frame_at: Optional[float] = None
@@ -380,7 +381,8 @@ class SLAM:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
         mapping iterations (unless `train` is false: a run cut short keeps the map it has):
         `final_iters`, plus `final_iters_per_frame` a frame when synchronous or as long as
-        `final_time` allows in real time, their learning rates annealed to `final_lr_factor`; in
+        `final_time` allows in real time, their learning rates annealed (in real time from
+        `realtime_lr_scale` times the mapper's) to `final_lr_factor` times them; in
         batches, calling `progress(done, total)` after each (total None while a real-time run
         trains on for `final_time`, then (done, done) once); Ctrl-C stops between batches."""
         in_thread = self.mapping_in_thread
@@ -400,15 +402,17 @@ class SLAM:
                   if train and in_thread and self._first_frame_at is not None else 0.0)
         # Then the count is known only once the time is spent.
         open_ended = budget > 0
-        start, done = time.perf_counter(), 0
-        while done < total or time.perf_counter() - start < budget:
+        began, done = time.perf_counter(), 0
+        # The learning rates anneal from those the frames trained with.
+        start = self.config.realtime_lr_scale if in_thread else 1.0
+        while done < total or time.perf_counter() - began < budget:
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
             n = min(FINAL_BATCH, total - done) if done < total else FINAL_BATCH
             # How far along (below 1 inside the loop, which ends once both the count and the
             # time are spent).
             parts = ([done / total] if total else []) + \
-                ([(time.perf_counter() - start) / budget] if open_ended else [])
-            scale = self.config.final_lr_factor ** min(parts)
+                ([(time.perf_counter() - began) / budget] if open_ended else [])
+            scale = start * (self.config.final_lr_factor / start) ** min(parts)
             self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes,
                                                        lr_scale=scale))
             done += n
