@@ -33,6 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
     """The options of a SLAM run, shared with `legslam demo`."""
+    d = SLAMConfig()
     p.add_argument("--out", default=None,
                    help="output folder (default: legslam-out/<name>); it must be empty, or hold a "
                         "previous run and --overwrite be given; never the input's folder")
@@ -45,8 +46,10 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "relocalisation and loop closure)")
     p.add_argument("--realtime", action="store_true",
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
-                        "the iterations the spare CPU allows, and at the end trains on for 1.25 "
-                        "times as long as the frames took (config: mapping_thread, final_time)")
+                        f"the iterations the spare CPU allows, at {d.realtime_lr_scale:g} times the "
+                        f"learning rates, and at the end trains on for {d.final_time:g} times as "
+                        "long as the frames took (config: mapping_thread, realtime_lr_scale, "
+                        "final_time)")
     p.add_argument("--pace", type=float, nargs="?", const=1.0, default=None, metavar="SPEED",
                    help="play the recording as its camera delivered it: no frame before its "
                         "timestamp says (SPEED times the recorded speed, default 1), so that "
