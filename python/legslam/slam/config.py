@@ -210,8 +210,10 @@ class SLAMConfig:
     #: against 1.65-1.89) or the same (7-Scenes paced), the features closer to the encoder's.
     #: 3 gained more on 7-Scenes (24.13 flat out, 24.80 paced) and on the Replica render flat
     #: out (32.85), but lost 0.5 dB on it paced (33.74), where the map gets more iterations a
-    #: keyframe; 6 lost on both. Synchronous runs lost with 2 (7-Scenes 25.25 against 25.21 dB
-    #: but SSIM 0.835 against 0.847 and ATE 4.02 against 3.81 cm; Replica 35.50 against 35.90).
+    #: keyframe; 6 fell back (7-Scenes 23.69 dB, SSIM 0.785 against ~0.82; Replica 32.17 dB).
+    #: The built-in scene in real time (a run of seconds) with 2: 28.6-28.7 against 28.9 dB,
+    #: depth L1 3.0 against 4.0 cm. Synchronous runs lost with 2 (7-Scenes 25.25 against 25.21
+    #: dB but SSIM 0.835 against 0.847 and ATE 4.02 against 3.81 cm; Replica 35.50 against 35.90).
     realtime_lr_scale: float = 2.0
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
     #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
