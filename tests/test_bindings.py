@@ -154,6 +154,34 @@ def test_keyframe_corrections_are_checked_by_name_and_value():
     assert mapper.correct_keyframes(np.eye(4)[None]) == mapper.num_gaussians
 
 
+def test_learning_rate_scales_reach_their_groups_and_are_checked_by_name_and_value():
+    rgb, depth = _frame()
+
+    def first_step(lr_scale):
+        mapper = _core.MapperCore({"levels": 1, "finest_level": 0, "grow_level": 0})
+        mapper.add_keyframe(rgb.astype(np.float32) / 255, depth, K, np.eye(4))
+        before = mapper.export()
+        mapper.train(1, lr_scale=lr_scale)
+        after = mapper.export()
+        return {g: np.abs(after[g] - before[g]).sum() for g in ("means", "log_scales", "sh")}
+
+    one, both = first_step(1.0), first_step(2.0)
+    by_group = first_step({"sh": 2.0, "means": 0.5})
+    # Adam's first step is the rate times the gradient's sign.
+    for group, want in (("sh", 2.0), ("means", 0.5), ("log_scales", 1.0)):
+        assert one[group] > 0
+        assert by_group[group] / one[group] == pytest.approx(want, rel=1e-2), group
+        assert both[group] / one[group] == pytest.approx(2.0, rel=1e-2), group
+    mapper = _core.MapperCore({"levels": 1, "finest_level": 0, "grow_level": 0})
+    mapper.add_keyframe(rgb.astype(np.float32) / 255, depth, K, np.eye(4))
+    with pytest.raises(ValueError, match='no learning-rate group "colour"'):
+        mapper.train(1, lr_scale={"colour": 2.0})
+    with pytest.raises(ValueError, match="learning-rate scale of sh must be > 0"):
+        mapper.train(1, lr_scale={"sh": 0.0})
+    with pytest.raises(ValueError, match="must be > 0"):
+        mapper.train(1, lr_scale=-1.0)
+
+
 def _map_pool_threads() -> dict:
     """Thread id -> nice value of the process's mapper pool threads (Linux /proc)."""
     out = {}

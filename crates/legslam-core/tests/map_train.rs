@@ -2,7 +2,8 @@
 //! pruning keep the optimiser's rows in step with the map's.
 
 use legslam_core::camera::{Intrinsics, Pose};
-use legslam_core::map::{Mapper, MapperConfig};
+use legslam_core::map::{GaussianMap, Mapper, MapperConfig};
+use legslam_core::optim::Groups;
 use legslam_core::Real;
 
 fn wall(w: usize, h: usize) -> (Vec<Real>, Vec<Real>, Intrinsics) {
@@ -352,47 +353,85 @@ fn keyframes_keep_only_the_levels_mapping_uses() {
     assert_eq!(full.keyframes[0].levels[0].depth.len(), 64 * 48);
 }
 
+/// One mapping iteration on a wall, with the learning rates `set` sets: the map before it and
+/// the mapper after.
+fn first_step(set: impl FnOnce(&mut Mapper)) -> (GaussianMap, Mapper) {
+    let cfg = MapperConfig {
+        finest_level: 0,
+        grow_level: 1,
+        ..Default::default()
+    };
+    let mut m = Mapper::new(cfg).unwrap();
+    let (rgb, depth, k) = wall(32, 24);
+    m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
+    let before = m.map.clone();
+    set(&mut m);
+    m.train(1).unwrap();
+    (before, m)
+}
+
+/// How far that step moved the means, log-scales, opacities and SH (sums of |change|).
+fn step_sizes((before, m): &(GaussianMap, Mapper)) -> [f64; 4] {
+    let sum = |a: &[Real], b: &[Real]| -> f64 {
+        a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs())).sum()
+    };
+    [
+        sum(&m.map.means, &before.means),
+        sum(&m.map.log_scales, &before.log_scales),
+        sum(&m.map.opacity_logits, &before.opacity_logits),
+        sum(&m.map.sh, &before.sh),
+    ]
+}
+
 /// A learning-rate scale s makes Adam's first step (lr times the gradient's sign) s times as
 /// long in every group, and scale 1 gives back exactly the configured rates.
 #[test]
 fn a_learning_rate_scale_scales_every_groups_step() {
-    let trained = |scales: &[Real]| {
-        let cfg = MapperConfig {
-            finest_level: 0,
-            grow_level: 1,
-            ..Default::default()
-        };
-        let mut m = Mapper::new(cfg).unwrap();
-        let (rgb, depth, k) = wall(32, 24);
-        m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
-        let before = m.map.clone();
-        for &s in scales {
-            m.set_lr_scale(s).unwrap();
-        }
-        m.train(1).unwrap();
-        (before, m)
-    };
-    let steps = |(before, m): &(legslam_core::map::GaussianMap, Mapper)| {
-        let sum = |a: &[Real], b: &[Real]| -> f64 {
-            a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs())).sum()
-        };
-        [
-            sum(&m.map.log_scales, &before.log_scales),
-            sum(&m.map.opacity_logits, &before.opacity_logits),
-            sum(&m.map.sh, &before.sh),
-        ]
-    };
-    let full = steps(&trained(&[]));
-    let quarter = steps(&trained(&[0.25]));
+    let full = step_sizes(&first_step(|_| {}));
+    let quarter = step_sizes(&first_step(|m| m.set_lr_scale(0.25).unwrap()));
     for (f, q) in full.iter().zip(quarter) {
         assert!(*f > 0.0 && (q / f - 0.25).abs() < 0.01, "{q} against {f}");
     }
-    let (_, a) = trained(&[]);
-    let (_, b) = trained(&[0.25, 1.0]);
+    let (_, a) = first_step(|_| {});
+    let (_, b) = first_step(|m| {
+        m.set_lr_scale(0.25).unwrap();
+        m.set_lr_scale(1.0).unwrap();
+    });
     assert_eq!(a.map.sh, b.map.sh);
     assert_eq!(a.map.means, b.map.means);
     let mut m = Mapper::new(MapperConfig::default()).unwrap();
     for bad in [0.0, -1.0, Real::NAN, Real::INFINITY] {
         assert!(m.set_lr_scale(bad).is_err(), "{bad}");
     }
+}
+
+/// Scales by group move each group's first step by its own scale and leave the others' steps
+/// as they were.
+#[test]
+fn learning_rate_scales_by_group_scale_each_groups_step_alone() {
+    let full = step_sizes(&first_step(|_| {}));
+    let geometry = step_sizes(&first_step(|m| {
+        m.set_lr_scales(Groups {
+            means: 3.0,
+            log_scales: 3.0,
+            quats: 3.0,
+            ..Groups::splat(1.0)
+        })
+        .unwrap()
+    }));
+    for (i, want) in [3.0, 3.0, 1.0, 1.0].into_iter().enumerate() {
+        assert!(
+            full[i] > 0.0 && (geometry[i] / full[i] - want).abs() < 0.01 * want,
+            "group {i}: {} against {}",
+            geometry[i],
+            full[i]
+        );
+    }
+    let mut m = Mapper::new(MapperConfig::default()).unwrap();
+    let bad = Groups {
+        sh: 0.0,
+        ..Groups::splat(1.0)
+    };
+    let err = m.set_lr_scales(bad).unwrap_err();
+    assert!(err.contains("sh"), "{err}");
 }

@@ -1,12 +1,16 @@
 //! Bindings of the mapper: the map lives here in Rust; frames cross once, images and arrays
 //! are copied out only on request.
 
+use std::collections::HashMap;
+
 use legslam_core::camera::Pose;
 use legslam_core::map::train::{Mapper, MapperConfig, TrainReport};
 use legslam_core::map::{FeatureGrid, GaussianMap};
+use legslam_core::optim::Groups;
 use legslam_core::raster::Rendered;
 use legslam_core::Real;
 use numpy::{PyArray1, PyArrayMethods, PyUntypedArrayMethods};
+use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -22,6 +26,42 @@ fn mapper_options<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let c = options_from(py, options, "mapper", MapperConfig::validate)?;
     options_dict(py, &c)
+}
+
+/// `MapperCore.train`'s learning-rate scale: one for every group, or by group name.
+#[derive(FromPyObject)]
+enum LrScale {
+    All(f64),
+    Groups(HashMap<String, f64>),
+}
+
+impl LrScale {
+    fn groups(self) -> PyResult<Groups<Real>> {
+        match self {
+            LrScale::All(s) => Ok(Groups::splat(s as Real)),
+            LrScale::Groups(named) => {
+                let mut scales = Groups::splat(1.0);
+                for (name, s) in named {
+                    let group = match name.as_str() {
+                        "means" => &mut scales.means,
+                        "log_scales" => &mut scales.log_scales,
+                        "quats" => &mut scales.quats,
+                        "opacity" => &mut scales.opacity_logits,
+                        "sh" => &mut scales.sh,
+                        "features" => &mut scales.features,
+                        _ => {
+                            return Err(PyValueError::new_err(format!(
+                                "no learning-rate group {name:?} (means, log_scales, quats, \
+                                 opacity, sh, features)"
+                            )))
+                        }
+                    };
+                    *group = s as Real;
+                }
+                Ok(scales)
+            }
+        }
+    }
 }
 
 /// What `MapperCore.train` did: iterations run, the last iteration's loss terms, the
@@ -173,19 +213,22 @@ impl PyMapper {
     }
 
     /// Runs mapping iterations on keyframes drawn from the most recent `window` (default: the
-    /// configured window), with the Gaussians' learning rates `lr_scale` times the configured.
-    #[pyo3(signature = (iterations, window=None, lr_scale=1.0))]
+    /// configured window), with the Gaussians' learning rates `lr_scale` times the configured:
+    /// one number for every group, or a dict of group (the mapper options' `lr_` names:
+    /// means, log_scales, quats, opacity, sh, features) to its scale, 1 for those left out.
+    #[pyo3(signature = (iterations, window=None, lr_scale=LrScale::All(1.0)))]
     fn train(
         &mut self,
         py: Python<'_>,
         iterations: usize,
         window: Option<usize>,
-        lr_scale: f64,
+        lr_scale: LrScale,
     ) -> PyResult<PyTrainReport> {
+        let scales = lr_scale.groups()?;
         let inner = &mut self.inner;
         let window = window.unwrap_or(inner.config.window);
         let r = pool::call(&self.pool, py, || {
-            inner.set_lr_scale(lr_scale as Real)?;
+            inner.set_lr_scales(scales)?;
             inner.train_window(iterations, window)
         })?;
         Ok(r.into())

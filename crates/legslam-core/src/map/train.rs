@@ -14,7 +14,7 @@ use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
     DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
 };
-use crate::optim::{normalize_quats, Adam, AdamConfig, Groups};
+use crate::optim::{normalize_quats, Adam, AdamConfig, Groups, NAMES};
 use crate::raster::{
     backward_into, render, render_into, BackwardScratch, Camera, Gradients, ImageGrads,
     RenderOptions, Rendered, Simd,
@@ -349,10 +349,20 @@ impl Mapper {
     /// Scales the Gaussians' learning rates (every group) to `scale` times the configured
     /// ones, until set again: a refinement at the end of a run anneals them.
     pub fn set_lr_scale(&mut self, scale: Real) -> Result<(), String> {
-        if !(scale.is_finite() && scale > 0.0) {
-            return Err(format!("the learning-rate scale must be > 0, got {scale}"));
+        self.set_lr_scales(Groups::splat(scale))
+    }
+
+    /// Scales each group's learning rate to its `scales` times the configured one, until set
+    /// again.
+    pub fn set_lr_scales(&mut self, scales: Groups<Real>) -> Result<(), String> {
+        for (name, s) in NAMES.iter().zip(scales.into_array()) {
+            if !(s.is_finite() && s > 0.0) {
+                return Err(format!(
+                    "the learning-rate scale of {name} must be > 0, got {s}"
+                ));
+            }
         }
-        self.adam.config.lr = self.config.adam.lr.map(|lr| lr * scale);
+        self.adam.config.lr = self.config.adam.lr.zip(scales, |lr, s| lr * s);
         Ok(())
     }
 

@@ -57,6 +57,19 @@ impl<T> Groups<T> {
     pub fn map<U>(self, f: impl FnMut(T) -> U) -> Groups<U> {
         Groups::from_array(self.into_array().map(f))
     }
+
+    /// `f` of each group's pair.
+    pub fn zip<U, V>(self, o: Groups<U>, mut f: impl FnMut(T, U) -> V) -> Groups<V> {
+        let mut o = o.into_array().into_iter();
+        self.map(|a| f(a, o.next().expect("six groups")))
+    }
+}
+
+impl<T: Copy> Groups<T> {
+    /// `v` for every group.
+    pub fn splat(v: T) -> Self {
+        Groups::from_array([v; 6])
+    }
 }
 
 /// The parameter-group gradients of a rasterizer backward pass.

@@ -12,4 +12,5 @@ mod small_adam;
 pub(crate) use adam::rows_in;
 pub use adam::{normalize_quats, Adam, AdamConfig, ExpDecay};
 pub use groups::Groups;
+pub(crate) use groups::NAMES;
 pub use small_adam::SmallAdam;
