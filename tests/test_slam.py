@@ -267,7 +267,7 @@ def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scen
 
 
 class RecordingMapper:
-    """A mapper that notes the iterations and learning-rate scale of each `train` call."""
+    """A mapper that notes the iterations and learning-rate scales of each `train` call."""
     def __init__(self, mapper):
         self.mapper, self.iterations, self.scales = mapper, [], []
 
@@ -295,23 +295,32 @@ def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
         slam.finish()
         return slam.mapper.scales
 
-    assert scales(final_iters=100, final_lr_factor=1.0) == [1.0] * 4
-    # Log-linear in the iterations done, per batch: 1, f^(1/4), f^(1/2), f^(3/4).
+    groups = ("means", "log_scales", "quats", "opacity", "sh", "features")
+    assert scales(final_iters=100, final_lr_factor=1.0) == [dict.fromkeys(groups, 1.0)] * 4
+    # Log-linear in the iterations done, per batch: 1, f^(1/4), f^(1/2), f^(3/4), every group.
     f = SLAMConfig().final_lr_factor
     assert f < 1
-    np.testing.assert_allclose(scales(final_iters=100), [f ** (k / 4) for k in range(4)], rtol=1e-12)
-    # Real time, by the time spent: from the rates the frames trained with down, never below
-    # the factor.
+    for k, s in enumerate(scales(final_iters=100)):
+        assert set(s) == set(groups)
+        np.testing.assert_allclose(list(s.values()), f ** (k / 4), rtol=1e-12)
+    # Real time, by the time spent: each group from the rate the frames trained it with down,
+    # never below the factor.
     monkeypatch.setattr(slam_module, "FINAL_BATCH", 2)
-    for start in (1.0, 3.0):
+    for start, geometry in ((1.0, 1.0), (3.0, 4.5)):
         timed = scales(12, final_iters=0, final_time=0.5, mapping_thread=True, final_lr_factor=0.1,
-                       realtime_lr_scale=start)
-        assert len(timed) >= 2 and 0.95 * start < timed[0] <= start, timed
-        assert all(0.1 <= b < a for a, b in zip(timed, timed[1:])), timed
+                       realtime_lr_scale=start, realtime_geometry_lr_scale=geometry)
+        assert len(timed) >= 2
+        for group in groups:
+            first = geometry if group in ("means", "log_scales", "quats") else start
+            rates = [s[group] for s in timed]
+            assert 0.95 * first < rates[0] <= first, (group, rates)
+            assert all(0.1 <= b < a for a, b in zip(rates, rates[1:])), (group, rates)
     with pytest.raises(ValueError, match="final_lr_factor"):
         SLAMConfig(final_lr_factor=0.0)
     with pytest.raises(ValueError, match="realtime_lr_scale"):
         SLAMConfig(realtime_lr_scale=0.0)
+    with pytest.raises(ValueError, match="realtime_geometry_lr_scale"):
+        SLAMConfig(realtime_geometry_lr_scale=1e3)
 
 
 def test_the_mapping_thread_trains_at_the_real_time_learning_rates(scene, monkeypatch):
@@ -326,9 +335,10 @@ def test_the_mapping_thread_trains_at_the_real_time_learning_rates(scene, monkey
             super().__init__(recorded[-1], *args, **kwargs)
 
     monkeypatch.setattr(slam_module, "ThreadedMapping", Recording)
-    for scale in (1.0, 2.5):
+    for scale, geometry in ((1.0, 1.0), (2.5, 4.0)):
         slam = SLAM(SLAMConfig(features=False, mapping_thread=True, final_iters=0, final_time=0.0,
-                               realtime_lr_scale=scale), seq[0].K, 160, 120)
+                               realtime_lr_scale=scale, realtime_geometry_lr_scale=geometry),
+                    seq[0].K, 160, 120)
         for i in range(6):
             slam.step(seq[i].rgb, seq[i].depth)
         # The first keyframe, trained a few batches before the thread stops.
@@ -337,7 +347,9 @@ def test_the_mapping_thread_trains_at_the_real_time_learning_rates(scene, monkey
             time.sleep(0.01)
         slam.finish()
         assert len(recorded[-1].scales) >= 3
-        assert set(recorded[-1].scales) == {scale}
+        want = {"means": geometry, "log_scales": geometry, "quats": geometry,
+                "opacity": scale, "sh": scale, "features": scale}
+        assert all(s == want for s in recorded[-1].scales), recorded[-1].scales
 
 
 def test_synchronous_runs_spend_each_frames_iterations_at_the_end(scene):

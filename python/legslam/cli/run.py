@@ -47,8 +47,10 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--realtime", action="store_true",
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
                         f"the iterations the spare CPU allows, at {d.realtime_lr_scale:g} times the "
-                        f"learning rates, and at the end trains on for {d.final_time:g} times as "
-                        "long as the frames took (config: mapping_thread, realtime_lr_scale, "
+                        f"learning rates ({d.realtime_geometry_lr_scale:g} times for the "
+                        "Gaussians' positions and shapes), and at the end trains on for "
+                        f"{d.final_time:g} times as long as the frames took (config: "
+                        "mapping_thread, realtime_lr_scale, realtime_geometry_lr_scale, "
                         "final_time)")
     p.add_argument("--pace", type=float, nargs="?", const=1.0, default=None, metavar="SPEED",
                    help="play the recording as its camera delivered it: no frame before its "

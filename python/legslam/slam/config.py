@@ -199,9 +199,10 @@ class SLAMConfig:
     #: noise 35.09 against 34.07 dB (ATE unchanged in all). Real time, whose map is short of
     #: iterations, gained nothing measurable (within +-0.2 dB).
     final_lr_factor: float = 0.1
-    #: With `mapping_thread`: the Gaussians' learning rates are this many times the mapper's
-    #: (`lr_*`) while frames come in, and the final iterations anneal them from there to
-    #: `final_lr_factor` of the mapper's. A real-time map gets a third of a synchronous one's
+    #: With `mapping_thread`: the learning rates of the Gaussians' opacity, colour and features
+    #: are this many times the mapper's (`lr_*`) while frames come in (their positions', scales'
+    #: and rotations' `realtime_geometry_lr_scale` times), and the final iterations anneal them
+    #: from there to `final_lr_factor` of the mapper's. A real-time map gets a third of a synchronous one's
     #: iterations, and larger steps make up part of it (2026-11-27, runs alternating, PSNR
     #: every 5th frame, means of 1-4 runs): 7-Scenes flat out 23.93 against 23.39 dB, at the
     #: camera's pace 24.52 against 24.26 dB; the 400-frame Replica render flat out 32.46
@@ -215,6 +216,17 @@ class SLAMConfig:
     #: depth L1 3.0 against 4.0 cm. Synchronous runs lost with 2 (7-Scenes 25.25 against 25.21
     #: dB but SSIM 0.835 against 0.847 and ATE 4.02 against 3.81 cm; Replica 35.50 against 35.90).
     realtime_lr_scale: float = 2.0
+    #: With `mapping_thread`: the scale of the positions', scales' and rotations' learning
+    #: rates, as `realtime_lr_scale` is the others'. New Gaussians are grown round, one pixel
+    #: wide, and a real-time map has few iterations to shape them. 3 against 2 (2026-11-27,
+    #: alternating): 7-Scenes flat out 24.34 / 24.18 against 24.17 / 24.06 dB every 5th
+    #: frame, paced 24.81 / 24.85 against 24.76 / 24.78; a 400-frame Replica render with
+    #: Kinect-like noise flat out 32.53 / 32.44 against 32.33 / 32.43 (depth L1 1.21 / 1.25
+    #: against 1.53 / 1.34 cm), paced 33.77 / 33.72 against 33.50 / 33.34. Colour at 3 too lost
+    #: on the exact render paced (33.92 against 34.20 dB, means of three), geometry alone not
+    #: (34.26). The built-in scene in real time (4 iterations while frames come in, then 100)
+    #: lost 0.1-0.25 dB (28.38-28.50 against 28.63) with depth L1 2.5 against 3.0 cm.
+    realtime_geometry_lr_scale: float = 3.0
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
     #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
     #: time, on a thread pool of its own). Low overlap then makes a keyframe only once the
@@ -416,6 +428,11 @@ class SLAMConfig:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def realtime_lr_scales(self) -> dict:
+        """The mapping thread's learning-rate scale by group (`MapperCore.train`'s names)."""
+        g, a = self.realtime_geometry_lr_scale, self.realtime_lr_scale
+        return {"means": g, "log_scales": g, "quats": g, "opacity": a, "sh": a, "features": a}
+
 
 #: Each numeric option's range (inclusive).
 _RANGES = {
@@ -426,6 +443,7 @@ _RANGES = {
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
     "final_iters_per_frame": (0.0, _INF),
     "final_time": (0.0, _INF), "final_lr_factor": (1e-6, 1.0), "realtime_lr_scale": (1e-2, 1e2),
+    "realtime_geometry_lr_scale": (1e-2, 1e2),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (0, _INF),
     "jump_residual_ratio": (1.0, _INF),

@@ -71,10 +71,11 @@ class InlineMapping:
 
 class ThreadedMapping:
     """Mapping in a worker thread, `batch` iterations at a time over the keyframes it has,
-    with the Gaussians' learning rates `lr_scale` times the mapper's."""
+    with the Gaussians' learning rates `lr_scale` times the mapper's (a number, or a dict by
+    group as `MapperCore.train` takes it)."""
 
     def __init__(self, mapper, K_track: np.ndarray, track_size: tuple, batch: int = 2,
-                 lr_scale: float = 1.0):
+                 lr_scale=1.0):
         self._mapper = mapper
         self._K_track, self._track_size = K_track, track_size
         self._batch = batch

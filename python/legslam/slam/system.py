@@ -116,7 +116,7 @@ class SLAM:
         self._last_keyframe: Optional[KeyframeView] = None
         self._last_tracked: Optional[View] = None
         self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch,
-                                         c.realtime_lr_scale)
+                                         c.realtime_lr_scales())
                          if c.mapping_thread else self._inline_mapping())
         self._final_stats: list = []
         self._first_frame_at: Optional[float] = None
@@ -382,7 +382,7 @@ class SLAM:
         mapping iterations (unless `train` is false: a run cut short keeps the map it has):
         `final_iters`, plus `final_iters_per_frame` a frame when synchronous or as long as
         `final_time` allows in real time, their learning rates annealed (in real time from
-        `realtime_lr_scale` times the mapper's) to `final_lr_factor` times them; in
+        the real-time scales of the mapper's) to `final_lr_factor` times them; in
         batches, calling `progress(done, total)` after each (total None while a real-time run
         trains on for `final_time`, then (done, done) once); Ctrl-C stops between batches."""
         in_thread = self.mapping_in_thread
@@ -403,8 +403,11 @@ class SLAM:
         # Then the count is known only once the time is spent.
         open_ended = budget > 0
         began, done = time.perf_counter(), 0
-        # The learning rates anneal from those the frames trained with.
-        start = self.config.realtime_lr_scale if in_thread else 1.0
+        # The learning rates anneal from those the frames trained with, group by group.
+        start = self.config.realtime_lr_scales()
+        if not in_thread:
+            start = dict.fromkeys(start, 1.0)
+        factor = self.config.final_lr_factor
         while done < total or time.perf_counter() - began < budget:
             # Over every keyframe: the map is used (and evaluated) over the whole sequence.
             n = min(FINAL_BATCH, total - done) if done < total else FINAL_BATCH
@@ -412,7 +415,7 @@ class SLAM:
             # time are spent).
             parts = ([done / total] if total else []) + \
                 ([(time.perf_counter() - began) / budget] if open_ended else [])
-            scale = start * (self.config.final_lr_factor / start) ** min(parts)
+            scale = {g: s * (factor / s) ** min(parts) for g, s in start.items()}
             self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes,
                                                        lr_scale=scale))
             done += n
