@@ -202,9 +202,10 @@ class SLAMConfig:
     #: With `mapping_thread`: the learning rates of the Gaussians' opacity, colour and features
     #: are this many times the mapper's (`lr_*`) while frames come in (their positions', scales'
     #: and rotations' `realtime_geometry_lr_scale` times), and the final iterations anneal them
-    #: from there to `final_lr_factor` of the mapper's. A real-time map gets a third of a synchronous one's
-    #: iterations, and larger steps make up part of it (2026-11-27, runs alternating, PSNR
-    #: every 5th frame, means of 1-4 runs): 7-Scenes flat out 23.93 against 23.39 dB, at the
+    #: from there to `final_lr_factor` of the mapper's. A real-time map gets a third of a
+    #: synchronous one's iterations, and larger steps make up part of it (measured with every
+    #: group at this scale; 2026-11-27, runs alternating, PSNR every 5th frame, means of 1-4
+    #: runs): 7-Scenes flat out 23.93 against 23.39 dB, at the
     #: camera's pace 24.52 against 24.26 dB; the 400-frame Replica render flat out 32.46
     #: against 32.45 dB, paced 34.12 against 34.21, with Kinect-like noise paced 33.58 against
     #: 33.53; depth L1 lower (7-Scenes flat out 2.67-2.71 against 2.78-2.86 cm, Replica 1.25-1.38
