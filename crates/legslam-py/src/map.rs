@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use legslam_core::camera::Pose;
 use legslam_core::map::train::{Mapper, MapperConfig, TrainReport};
 use legslam_core::map::{FeatureGrid, GaussianMap};
-use legslam_core::optim::Groups;
+use legslam_core::optim::{Groups, LR_NAMES};
 use legslam_core::raster::Rendered;
 use legslam_core::Real;
 use numpy::{PyArray1, PyArrayMethods, PyUntypedArrayMethods};
@@ -40,25 +40,17 @@ impl LrScale {
         match self {
             LrScale::All(s) => Ok(Groups::splat(s as Real)),
             LrScale::Groups(named) => {
-                let mut scales = Groups::splat(1.0);
+                let mut scales = [1.0; 6];
                 for (name, s) in named {
-                    let group = match name.as_str() {
-                        "means" => &mut scales.means,
-                        "log_scales" => &mut scales.log_scales,
-                        "quats" => &mut scales.quats,
-                        "opacity" => &mut scales.opacity_logits,
-                        "sh" => &mut scales.sh,
-                        "features" => &mut scales.features,
-                        _ => {
-                            return Err(PyValueError::new_err(format!(
-                                "no learning-rate group {name:?} (means, log_scales, quats, \
-                                 opacity, sh, features)"
-                            )))
-                        }
-                    };
-                    *group = s as Real;
+                    let i = LR_NAMES.iter().position(|n| *n == name).ok_or_else(|| {
+                        PyValueError::new_err(format!(
+                            "no learning-rate group {name:?} ({})",
+                            LR_NAMES.join(", ")
+                        ))
+                    })?;
+                    scales[i] = s as Real;
                 }
-                Ok(scales)
+                Ok(Groups::from_array(scales))
             }
         }
     }

@@ -31,6 +31,10 @@ pub(crate) const NAMES: [&str; 6] = [
     "features",
 ];
 
+/// Group names as the mapper's `lr_` options spell them (`lr_opacity`), in the same order:
+/// what callers name a group by.
+pub const LR_NAMES: [&str; 6] = ["means", "log_scales", "quats", "opacity", "sh", "features"];
+
 impl<T> Groups<T> {
     pub fn into_array(self) -> [T; 6] {
         [
