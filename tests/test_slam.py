@@ -280,7 +280,7 @@ class RecordingMapper:
         return getattr(self.mapper, name)
 
 
-def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
+def test_final_learning_rates_fall_by_the_configured_factor(scene, monkeypatch):
     import legslam.slam.system as slam_module
 
     seq = open_dataset(scene)
@@ -303,8 +303,8 @@ def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
     for k, s in enumerate(scales(final_iters=100)):
         assert set(s) == set(groups)
         np.testing.assert_allclose(list(s.values()), f ** (k / 4), rtol=1e-12)
-    # Real time, by the time spent: each group from the rate the frames trained it with down,
-    # never below the factor.
+    # Real time, by the time spent: each group from the scale the frames trained it with down,
+    # never below the factor times that scale.
     monkeypatch.setattr(slam_module, "FINAL_BATCH", 2)
     for start, geometry in ((1.0, 1.0), (3.0, 4.5)):
         timed = scales(12, final_iters=0, final_time=0.5, mapping_thread=True, final_lr_factor=0.1,
@@ -314,7 +314,10 @@ def test_final_learning_rates_fall_to_the_configured_factor(scene, monkeypatch):
             first = geometry if group in ("means", "log_scales", "quats") else start
             rates = [s[group] for s in timed]
             assert 0.95 * first < rates[0] <= first, (group, rates)
-            assert all(0.1 <= b < a for a, b in zip(rates, rates[1:])), (group, rates)
+            assert all(0.1 * first <= b < a for a, b in zip(rates, rates[1:])), (group, rates)
+            # Every group by the same share of its start at each batch.
+            np.testing.assert_allclose([r / first for r in rates],
+                                       [t["opacity"] / start for t in timed], rtol=1e-12)
     with pytest.raises(ValueError, match="final_lr_factor"):
         SLAMConfig(final_lr_factor=0.0)
     with pytest.raises(ValueError, match="realtime_lr_scale"):

@@ -191,41 +191,46 @@ class SLAMConfig:
     #: with the old tracker in the same hour, 23.54 dB at 13.2; the Replica render 33.12 dB
     #: at 13.3 fps, against 0.75's 31.65 dB at 17.2.
     final_time: float = 1.25
-    #: The final iterations' learning rates fall log-linearly from the mapper's to this many
-    #: times them (1: constant), as the iterations (or, in real time, the time) run out. At a
+    #: The final iterations' learning rates fall log-linearly from where the frames left them
+    #: (the mapper's; with `mapping_thread`, the real-time scales of them) to this many times
+    #: that (1: constant), as the iterations (or, in real time, the time) run out. At a
     #: constant rate Adam keeps moving every Gaussian by about the rate each step; annealed,
     #: the map settles. Synchronous, 0.1 against 1: 7-Scenes 25.61 against 24.85 dB every
     #: 5th frame, a 400-frame Replica render 35.63 against 33.75 dB, with Kinect-like depth
-    #: noise 35.09 against 34.07 dB (ATE unchanged in all). Real time, whose map is short of
-    #: iterations, gained nothing measurable (within +-0.2 dB).
+    #: noise 35.09 against 34.07 dB (ATE unchanged in all). Real time, to 0.1 of its own
+    #: scales (geometry 0.3, the rest 0.2) instead of 0.1 of the mapper's (2026-11-27,
+    #: alternating, means): 7-Scenes flat out 24.27 against 24.08 dB (3 runs each); at the
+    #: camera's pace with `final_time` 0.95, 24.70 against 24.61 (5 each); a 400-frame Replica
+    #: render paced 34.21 against 33.84 (3 each), flat out 33.08 against 32.98 (2 each); the
+    #: built-in scene 29.09 against 28.67 (3 each).
     final_lr_factor: float = 0.1
-    #: With `mapping_thread`: the learning rates of the Gaussians' opacity, colour and features
-    #: are this many times the mapper's (`lr_*`) while frames come in (their positions', scales'
-    #: and rotations' `realtime_geometry_lr_scale` times), and the final iterations anneal them
-    #: from there to `final_lr_factor` of the mapper's. A real-time map gets a third of a
-    #: synchronous one's iterations, and larger steps make up part of it (measured with every
-    #: group at this scale; 2026-11-27, runs alternating, PSNR every 5th frame, means of 1-4
-    #: runs): 7-Scenes flat out 23.93 against 23.39 dB, at the
-    #: camera's pace 24.52 against 24.26 dB; the 400-frame Replica render flat out 32.46
+    #: With `mapping_thread`: the learning rates of the Gaussians' opacity, colour and features are
+    #: this many times the mapper's (`lr_*`) while frames come in (their positions', scales' and
+    #: rotations' `realtime_geometry_lr_scale` times), and the final iterations anneal them from
+    #: there to `final_lr_factor` times that. A real-time map gets a third of a synchronous one's
+    #: iterations, and larger steps make up part of it (measured with every group at this scale and
+    #: the final rates annealed to 0.1 of the mapper's, as they were then; 2026-11-27, runs
+    #: alternating, PSNR every 5th frame, means of 1-4 runs): 7-Scenes flat out 23.93 against 23.39
+    #: dB, at the camera's pace 24.52 against 24.26 dB; the 400-frame Replica render flat out 32.46
     #: against 32.45 dB, paced 34.12 against 34.21, with Kinect-like noise paced 33.58 against
     #: 33.53; depth L1 lower (7-Scenes flat out 2.67-2.71 against 2.78-2.86 cm, Replica 1.25-1.38
-    #: against 1.65-1.89) or the same (7-Scenes paced), the features closer to the encoder's.
-    #: 3 gained more on 7-Scenes (24.13 flat out, 24.80 paced) and on the Replica render flat
-    #: out (32.85), but lost 0.5 dB on it paced (33.74), where the map gets more iterations a
-    #: keyframe; 6 fell back (7-Scenes 23.69 dB, SSIM 0.785 against ~0.82; Replica 32.17 dB).
-    #: The built-in scene in real time (a run of seconds) with 2: 28.6-28.7 against 28.9 dB,
-    #: depth L1 3.0 against 4.0 cm. Synchronous runs lost with 2 (7-Scenes 25.25 against 25.21
-    #: dB but SSIM 0.835 against 0.847 and ATE 4.02 against 3.81 cm; Replica 35.50 against 35.90).
+    #: against 1.65-1.89) or the same (7-Scenes paced), the features closer to the encoder's. 3
+    #: gained more on 7-Scenes (24.13 flat out, 24.80 paced) and on the Replica render flat out
+    #: (32.85), but lost 0.5 dB on it paced (33.74), where the map gets more iterations a keyframe;
+    #: 6 fell back (7-Scenes 23.69 dB, SSIM 0.785 against ~0.82; Replica 32.17 dB). The built-in
+    #: scene in real time (a run of seconds) with 2: 28.6-28.7 against 28.9 dB, depth L1 3.0 against
+    #: 4.0 cm. Synchronous runs lost with 2 (7-Scenes 25.25 against 25.21 dB but SSIM 0.835 against
+    #: 0.847 and ATE 4.02 against 3.81 cm; Replica 35.50 against 35.90).
     realtime_lr_scale: float = 2.0
-    #: With `mapping_thread`: the scale of the positions', scales' and rotations' learning
-    #: rates, as `realtime_lr_scale` is the others'. New Gaussians are grown round, one pixel
-    #: wide, and a real-time map has few iterations to shape them. 3 against 2 (2026-11-27,
-    #: alternating): 7-Scenes flat out 24.34 / 24.18 against 24.17 / 24.06 dB every 5th
-    #: frame, paced 24.81 / 24.85 against 24.76 / 24.78; a 400-frame Replica render with
-    #: Kinect-like noise flat out 32.53 / 32.44 against 32.33 / 32.43 (depth L1 1.21 / 1.25
-    #: against 1.53 / 1.34 cm), paced 33.77 / 33.72 against 33.50 / 33.34. Colour at 3 too lost
-    #: on the exact render paced (33.92 against 34.20 dB, means of three), geometry alone not
-    #: (34.26). The built-in scene in real time (4 iterations while frames come in, then 100)
+    #: With `mapping_thread`: the scale of the positions', scales' and rotations' learning rates, as
+    #: `realtime_lr_scale` is the others'. New Gaussians are grown round, one pixel wide, and a
+    #: real-time map has few iterations to shape them. 3 against 2 (2026-11-27, alternating, the
+    #: final rates annealed to 0.1 of the mapper's as then): 7-Scenes flat out 24.34 / 24.18 against
+    #: 24.17 / 24.06 dB every 5th frame, paced 24.81 / 24.85 against 24.76 / 24.78; a 400-frame
+    #: Replica render with Kinect-like noise flat out 32.53 / 32.44 against 32.33 / 32.43 (depth L1
+    #: 1.21 / 1.25 against 1.53 / 1.34 cm), paced 33.77 / 33.72 against 33.50 / 33.34. Colour at 3
+    #: too lost on the exact render paced (33.92 against 34.20 dB, means of three), geometry alone
+    #: not (34.26). The built-in scene in real time (4 iterations while frames come in, then 100)
     #: lost 0.1-0.25 dB (28.38-28.50 against 28.63) with depth L1 2.5 against 3.0 cm.
     realtime_geometry_lr_scale: float = 3.0
     #: Map in a worker thread while this one tracks (real time: the frame rate is the

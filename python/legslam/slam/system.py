@@ -381,9 +381,9 @@ class SLAM:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
         mapping iterations (unless `train` is false: a run cut short keeps the map it has):
         `final_iters`, plus `final_iters_per_frame` a frame when synchronous or as long as
-        `final_time` allows in real time, their learning rates annealed (in real time from
-        the real-time scales of the mapper's) to `final_lr_factor` times them; in
-        batches, calling `progress(done, total)` after each (total None while a real-time run
+        `final_time` allows in real time, each group's learning rate annealed from where the
+        frames left it (the mapper's; in real time, its real-time scale of it) to
+        `final_lr_factor` times that; in batches, calling `progress(done, total)` after each (total None while a real-time run
         trains on for `final_time`, then (done, done) once); Ctrl-C stops between batches."""
         in_thread = self.mapping_in_thread
         if in_thread:
@@ -403,7 +403,8 @@ class SLAM:
         # Then the count is known only once the time is spent.
         open_ended = budget > 0
         began, done = time.perf_counter(), 0
-        # The learning rates anneal from those the frames trained with, group by group.
+        # Each group's learning rate anneals from the scale the frames trained it with to
+        # `final_lr_factor` times that scale.
         start = self.config.realtime_lr_scales()
         if not in_thread:
             start = dict.fromkeys(start, 1.0)
@@ -415,7 +416,7 @@ class SLAM:
             # time are spent).
             parts = ([done / total] if total else []) + \
                 ([(time.perf_counter() - began) / budget] if open_ended else [])
-            scale = {g: s * (factor / s) ** min(parts) for g, s in start.items()}
+            scale = {g: s * factor ** min(parts) for g, s in start.items()}
             self._final_stats.append(self.mapper.train(n, window=self.mapper.num_keyframes,
                                                        lr_scale=scale))
             done += n
