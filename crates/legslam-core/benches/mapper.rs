@@ -9,8 +9,10 @@
 //! cargo bench -p legslam-core --bench mapper
 //! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
 //! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20),
-//! LEGSLAM_BENCH_PRUNED (0 skips the second map), LEGSLAM_BENCH_SPARSE_ADAM (set: the mapper
-//! option `adam_sparse`; SLAM's default, and the bench's, is dense Adam).
+//! LEGSLAM_BENCH_PRUNED (0 skips the second map), LEGSLAM_BENCH_PORTABLE (0 skips the portable
+//! path where the CPU has AVX2: the fast path alone, e.g. for `perf record -D` past the setup),
+//! LEGSLAM_BENCH_SPARSE_ADAM (set: the mapper option `adam_sparse`; SLAM's default, and the
+//! bench's, is dense Adam).
 
 #[path = "common/mod.rs"]
 mod common;
@@ -128,7 +130,10 @@ fn main() {
     // million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0 skips it), on AVX2
     // where the CPU has it.
     let mut mappers = vec![grow(config.clone())];
-    let mut variants: Vec<(&str, usize, bool)> = vec![("portable", 0, false)];
+    let mut variants: Vec<(&str, usize, bool)> = Vec::new();
+    if env("LEGSLAM_BENCH_PORTABLE", 1) != 0 || !avx2_available() {
+        variants.push(("portable", 0, false));
+    }
     if avx2_available() {
         variants.push(("avx2", 0, true));
     }
