@@ -383,8 +383,9 @@ class SLAM:
         `final_iters`, plus `final_iters_per_frame` a frame when synchronous or as long as
         `final_time` allows in real time, each group's learning rate annealed from where the
         frames left it (the mapper's; in real time, its real-time scale of it) to
-        `final_lr_factor` times that; in batches, calling `progress(done, total)` after each (total None while a real-time run
-        trains on for `final_time`, then (done, done) once); Ctrl-C stops between batches."""
+        `final_lr_factor` times that; in batches, calling `progress(done, total)` after each
+        (total None while a real-time run trains on for `final_time`, then (done, done) once);
+        Ctrl-C stops between batches."""
         in_thread = self.mapping_in_thread
         if in_thread:
             threaded = self._mapping
