@@ -201,8 +201,9 @@ class SLAMConfig:
     #: scales (geometry 0.3, the rest 0.2) instead of 0.1 of the mapper's (2026-11-27,
     #: alternating, means): 7-Scenes flat out 24.27 against 24.08 dB (3 runs each); at the
     #: camera's pace with `final_time` 0.95, 24.70 against 24.61 (5 each); a 400-frame Replica
-    #: render paced 34.21 against 33.84 (3 each), flat out 33.08 against 32.98 (2 each); the
-    #: built-in scene 29.09 against 28.67 (3 each).
+    #: render paced 34.21 against 33.84 (3 each), flat out 33.08 against 32.98 (2 each), with
+    #: Kinect-like depth noise flat out 32.67 against 32.26 and paced 34.20 against 34.02 (2
+    #: each); the built-in scene 29.09 against 28.67 (3 each).
     final_lr_factor: float = 0.1
     #: With `mapping_thread`: the learning rates of the Gaussians' opacity, colour and features are
     #: this many times the mapper's (`lr_*`) while frames come in (their positions', scales' and
