@@ -14,7 +14,7 @@ use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
     DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
 };
-use crate::optim::{normalize_quats, Adam, AdamConfig, Groups, NAMES};
+use crate::optim::{normalize_quats, Adam, AdamConfig, Groups, LR_NAMES};
 use crate::raster::{
     backward_into, render, render_into, BackwardScratch, Camera, Gradients, ImageGrads,
     RenderOptions, Rendered, Simd,
@@ -355,7 +355,7 @@ impl Mapper {
     /// Scales each group's learning rate to its `scales` times the configured one, until set
     /// again.
     pub fn set_lr_scales(&mut self, scales: Groups<Real>) -> Result<(), String> {
-        for (name, s) in NAMES.iter().zip(scales.into_array()) {
+        for (name, s) in LR_NAMES.iter().zip(scales.into_array()) {
             if !(s.is_finite() && s > 0.0) {
                 return Err(format!(
                     "the learning-rate scale of {name} must be > 0, got {s}"

@@ -11,6 +11,5 @@ mod small_adam;
 
 pub(crate) use adam::rows_in;
 pub use adam::{normalize_quats, Adam, AdamConfig, ExpDecay};
-pub(crate) use groups::NAMES;
 pub use groups::{Groups, LR_NAMES};
 pub use small_adam::SmallAdam;
