@@ -126,6 +126,9 @@ def test_config_sections_are_the_engine_options_and_a_derived_one_is_set_in_one_
         SLAMConfig(mapper={"adam_sparse": 1})
     with pytest.raises(ValueError, match="mapper: revisit must lie in \\[0, 1\\], got 2"):
         SLAMConfig(mapper={"revisit": 2.0})
+    for flatness in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="mapper: .*grow_flatness must"):
+            SLAMConfig(mapper={"grow_flatness": flatness})
     with pytest.raises(ValueError, match="tracker.iterations must be a list of integers"):
         SLAMConfig(tracker={"iterations": 3})
     with pytest.raises(ValueError, match="tracker: .*geometric_huber must be positive"):

@@ -150,6 +150,100 @@ fn growth_merges_smooth_blocks_of_four_candidates() {
     assert_eq!(&map.features[2 * merged[0]..][..2], &[1.0, 2.0]);
 }
 
+/// A 16x12 keyframe of a plane tilted towards the camera's right (normal `tilted_normal()` in
+/// the camera's frame), a wall 4 m away from column 12 on, and a hole over pixels (1-5, 3-7)
+/// but for its centre.
+fn tilted_plane() -> (Keyframe, nalgebra::Vector3<f64>) {
+    let k = camera();
+    let n = nalgebra::Vector3::new(0.3, -0.2, -1.0).normalize();
+    let depth = (0..16 * 12)
+        .map(|p| {
+            let (x, y) = ((p % 16) as f64, (p / 16) as f64);
+            let ray = nalgebra::Vector3::new((x - k.cx) / k.fx, (y - k.cy) / k.fy, 1.0);
+            match (x as usize, y as usize) {
+                (1..=5, 3..=7) if (x, y) != (3.0, 5.0) => 0.0,
+                (12.., _) => 4.0,
+                // On the plane n . p = 2 n.z (through (0, 0, 2)).
+                _ => (2.0 * n.z / n.dot(&ray)) as Real,
+            }
+        })
+        .collect();
+    let rgb = vec![0.5; 16 * 12 * 3];
+    (Keyframe::new(0, rgb, depth, k, pose(), 1).unwrap(), n)
+}
+
+#[test]
+fn grown_gaussians_lie_flat_along_the_depths_surface() {
+    let (kf, plane) = tilted_plane();
+    let flat = GrowConfig {
+        flatness: 0.2,
+        ..Default::default()
+    };
+    let mut map = GaussianMap::new(1, 0);
+    let added = grow_all(&mut map, &kf, None, 0, &flat);
+    assert_eq!(added, 8 * 6 - 8, "eight candidates in the hole");
+    let (w2c, r) = (se3::inverse(&kf.pose), se3::rotation(&kf.pose));
+    let k = camera();
+    let mut seen = [0; 3];
+    for i in 0..added {
+        let m = &map.means[3 * i..][..3];
+        let pc = se3::transform_point(&w2c, &[m[0] as f64, m[1] as f64, m[2] as f64].into());
+        let x = (k.fx * pc.x / pc.z + k.cx).round() as usize;
+        let y = (k.fy * pc.y / pc.z + k.cy).round() as usize;
+        let q = &map.quats[4 * i..][..4];
+        let rot = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            q[0] as f64,
+            q[1] as f64,
+            q[2] as f64,
+            q[3] as f64,
+        ));
+        let s = &map.log_scales[3 * i..][..3];
+        if (x, y) == (3, 5) {
+            // Alone in the hole: no plane, so round.
+            assert!(s[0] == s[1] && s[1] == s[2]);
+            assert_eq!(q, [1.0, 0.0, 0.0, 0.0]);
+            seen[0] += 1;
+            continue;
+        }
+        // A disc on the surface: its thin axis (the rotation's z) along the surface's normal,
+        // the tilted plane's, or the far wall's (the camera's z) beyond the step (the Gaussians
+        // at columns 11 and 13 fit their plane to the pixels on their side of it, those beside
+        // the hole to the pixels around it); its first axis along the slope away from the
+        // camera, longer by 1 / cos of the angle the line of sight makes with the normal.
+        let n = if x >= 12 {
+            nalgebra::Vector3::z()
+        } else {
+            plane
+        };
+        let sight = pc.normalize();
+        let axis = |c: usize| r.transpose() * (rot * nalgebra::Vector3::ith(c, 1.0));
+        assert!(
+            axis(2).dot(&n).abs() > 0.9999,
+            "pixel ({x}, {y}): thin axis {:?}, normal {n:?}",
+            axis(2)
+        );
+        let slope = (sight - n * n.dot(&sight)).normalize();
+        assert!(axis(0).dot(&slope).abs() > 0.9999, "pixel ({x}, {y})");
+        let stretch = (1.0 / n.dot(&sight).abs()).min(3.0);
+        assert!(
+            (s[0] - s[1] - stretch.ln() as Real).abs() < 1e-4,
+            "pixel ({x}, {y})"
+        );
+        assert!((s[2] - s[1] - 0.2f32.ln() as Real).abs() < 1e-5);
+        seen[1 + usize::from(x >= 12)] += 1;
+    }
+    assert_eq!(seen, [1, 6 * 6 - 9, 2 * 6]);
+    // Round (the default): every Gaussian as before.
+    let mut round = GaussianMap::new(1, 0);
+    grow_all(&mut round, &kf, None, 0, &GrowConfig::default());
+    assert!(round.quats.chunks(4).all(|q| q == [1.0, 0.0, 0.0, 0.0]));
+    assert!(round
+        .log_scales
+        .chunks(3)
+        .all(|s| s[0] == s[1] && s[1] == s[2]));
+    assert_eq!(round.means, map.means);
+}
+
 #[test]
 fn growth_skips_what_the_map_explains() {
     let kf = wall();

@@ -5,7 +5,7 @@
 use super::features::FeatureGrid;
 use super::keyframe::Level;
 use super::store::{GaussianMap, NewGaussian};
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::camera::{se3, Pose};
 use crate::raster::sh;
@@ -39,6 +39,11 @@ pub struct GrowConfig {
     /// the same.
     pub merge_tolerance: Real,
     pub merge_depth_tolerance: Real,
+    /// Below 1, a new Gaussian lies flat on the plane fitted to the depth within its footprint:
+    /// its extent across the plane is this share of its extent along it, and it is stretched
+    /// along the slope away from the camera to cover on screen what a round one would (1:
+    /// round; round too where the depth shows no plane).
+    pub flatness: Real,
 }
 
 impl Default for GrowConfig {
@@ -57,6 +62,7 @@ impl Default for GrowConfig {
             depth_max: 10.0,
             merge_tolerance: 0.0,
             merge_depth_tolerance: 0.01,
+            flatness: 1.0,
         }
     }
 }
@@ -282,6 +288,19 @@ impl Seeder<'_> {
         let pw = se3::transform_point(self.pose, pc);
         let footprint = pc.z * stride as f64 / (0.5 * (k.fx + k.fy));
         let log_scale = (footprint * self.cfg.scale as f64).ln() as Real;
+        let mut log_scales = [log_scale; 3];
+        let mut quat = [1.0, 0.0, 0.0, 0.0];
+        if self.cfg.flatness != 1.0 {
+            let (x, y) = (at.0.round() as usize, at.1.round() as usize);
+            if let Some(n) = surface_normal(self.level, x, y, stride, self.cfg) {
+                let (axes, stretch) = disc_axes(pc, &n);
+                let r = se3::rotation(self.pose) * axes;
+                let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
+                quat = [q.w, q.i, q.j, q.k].map(|v| v as Real);
+                log_scales[0] += stretch.ln() as Real;
+                log_scales[2] += self.cfg.flatness.ln();
+            }
+        }
         let c0 = sh::basis_c0();
         for (s, c) in self.sh_row.iter_mut().zip(colour) {
             *s = (c - 0.5) / c0;
@@ -291,8 +310,8 @@ impl Seeder<'_> {
         }
         map.push(NewGaussian {
             mean: [pw.x as Real, pw.y as Real, pw.z as Real],
-            log_scale: [log_scale; 3],
-            quat: [1.0, 0.0, 0.0, 0.0],
+            log_scale: log_scales,
+            quat,
             opacity_logit: self.logit,
             sh: &self.sh_row,
             feature: if self.features.is_some() {
@@ -303,6 +322,83 @@ impl Seeder<'_> {
             origin: self.origin,
         });
     }
+}
+
+/// The unit normal, in the camera's frame, of the plane that fits best (least squares) the
+/// points `level`'s depth shows within `d` pixels of pixel (x, y), those across a depth step
+/// left out; none where fewer than half of those in the image have depth or they do not span
+/// a plane.
+fn surface_normal(
+    level: &Level,
+    x: usize,
+    y: usize,
+    d: usize,
+    cfg: &GrowConfig,
+) -> Option<Vector3<f64>> {
+    let k = &level.intrinsics;
+    let (w, h) = (k.width, k.height);
+    let z0 = *level.depth.get(y * w + x)?;
+    let (us, vs) = (
+        x.saturating_sub(d)..(x + d + 1).min(w),
+        y.saturating_sub(d)..(y + d + 1).min(h),
+    );
+    let window = us.len() * vs.len();
+    let mut points = Vec::with_capacity(window);
+    for v in vs {
+        for u in us.clone() {
+            let z = level.depth[v * w + u];
+            // A step of more than 5% of the depth a pixel is an edge, not a slope.
+            let off = u.abs_diff(x).max(v.abs_diff(y)) as Real;
+            if z >= cfg.depth_min && z <= cfg.depth_max && (z - z0).abs() <= 0.05 * z0 * off {
+                let z = z as f64;
+                points.push(Vector3::new(
+                    (u as f64 - k.cx) * z / k.fx,
+                    (v as f64 - k.cy) * z / k.fy,
+                    z,
+                ));
+            }
+        }
+    }
+    if 2 * points.len() < window {
+        return None;
+    }
+    let mean = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
+    let scatter = points
+        .iter()
+        .map(|p| (p - mean) * (p - mean).transpose())
+        .sum::<nalgebra::Matrix3<f64>>();
+    let eig = scatter.symmetric_eigen();
+    let mut order = [0, 1, 2];
+    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+    // Points along a line (or one point) give no plane.
+    if eig.eigenvalues[order[1]].partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let n = eig.eigenvectors.column(order[0]).into_owned();
+    n.iter().all(|v| v.is_finite()).then_some(n)
+}
+
+/// The axes (columns, in the camera's frame) of a disc on the surface of unit normal `n` at
+/// camera point `p`: the first along the slope away from the camera, the last along `n`; and
+/// how much longer the first must be than a round Gaussian to cover what it covers on screen
+/// (1 / cos of the angle between the line of sight and `n`, at most 3).
+fn disc_axes(p: &Vector3<f64>, n: &Vector3<f64>) -> (Matrix3<f64>, f64) {
+    let sight = p.normalize();
+    let n = if n.dot(&sight) > 0.0 { -n } else { *n };
+    let slope = sight - n * n.dot(&sight);
+    let first = if slope.norm() > 1e-6 {
+        slope.normalize()
+    } else {
+        // Face on: any direction in the plane.
+        let other = if n.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        n.cross(&other).normalize()
+    };
+    let axes = Matrix3::from_columns(&[first, n.cross(&first), n]);
+    (axes, (1.0 / n.dot(&sight).abs().max(1e-9)).min(3.0))
 }
 
 /// Gives every Gaussian created from keyframe `origin` that has no feature yet the target

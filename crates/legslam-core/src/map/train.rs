@@ -119,6 +119,12 @@ impl MapperConfig {
                 return Err(format!("{name} must be finite and >= 0, got {v}"));
             }
         }
+        if !(self.grow.flatness > 0.0 && self.grow.flatness <= 1.0) {
+            return Err(format!(
+                "grow_flatness must lie in (0, 1], got {}",
+                self.grow.flatness
+            ));
+        }
         if !(0.0..=1.0).contains(&self.revisit) {
             return Err(format!("revisit must lie in [0, 1], got {}", self.revisit));
         }
@@ -614,6 +620,7 @@ crate::options!(MapperConfig, "mapper", {
     "grow_scale" => grow.scale,
     "grow_merge_tolerance" => grow.merge_tolerance,
     "grow_merge_depth_tolerance" => grow.merge_depth_tolerance,
+    "grow_flatness" => grow.flatness,
     "depth_min" => grow.depth_min,
     "depth_max" => grow.depth_max,
     "prune_min_opacity" => prune.min_opacity,
