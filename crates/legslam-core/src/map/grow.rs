@@ -366,7 +366,7 @@ fn surface_normal(
     let scatter = points
         .iter()
         .map(|p| (p - mean) * (p - mean).transpose())
-        .sum::<nalgebra::Matrix3<f64>>();
+        .sum::<Matrix3<f64>>();
     let eig = scatter.symmetric_eigen();
     let mut order = [0, 1, 2];
     order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
