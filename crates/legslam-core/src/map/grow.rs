@@ -7,7 +7,7 @@ use super::keyframe::Level;
 use super::store::{GaussianMap, NewGaussian};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
-use crate::camera::{se3, Pose};
+use crate::camera::{se3, Intrinsics, Pose};
 use crate::raster::sh;
 use crate::Real;
 
@@ -67,6 +67,23 @@ impl Default for GrowConfig {
     }
 }
 
+impl GrowConfig {
+    /// Whether growth uses a measured depth `z`.
+    fn uses_depth(&self, z: Real) -> bool {
+        z >= self.depth_min && z <= self.depth_max
+    }
+}
+
+/// The camera point pixel (x, y) of a camera `k` shows at depth `z`.
+fn lift(k: &Intrinsics, x: usize, y: usize, z: Real) -> Vector3<f64> {
+    let z = z as f64;
+    Vector3::new(
+        (x as f64 - k.cx) * z / k.fx,
+        (y as f64 - k.cy) * z / k.fy,
+        z,
+    )
+}
+
 /// What the map shows at the keyframe's pose, at the level's resolution.
 pub struct RenderedView<'a> {
     pub alpha: &'a [Real],
@@ -101,7 +118,7 @@ pub fn grow(
         feat: vec![0.0; map.num_features],
     };
     // Whether pixel p measured a depth growth uses; its colour.
-    let valid = |p: usize| level.depth[p] >= cfg.depth_min && level.depth[p] <= cfg.depth_max;
+    let valid = |p: usize| cfg.uses_depth(level.depth[p]);
     let colour = |p: usize| [0, 1, 2].map(|c| level.rgb[p * 3 + c]);
     // The back-projected point of candidate pixel (x, y), unless its depth is invalid or the
     // map already explains it.
@@ -121,12 +138,7 @@ pub fn grow(
                 return None;
             }
         }
-        let zc = z as f64;
-        Some(Vector3::new(
-            (x as f64 - k.cx) * zc / k.fx,
-            (y as f64 - k.cy) * zc / k.fy,
-            zc,
-        ))
+        Some(lift(k, x, y, z))
     };
     let xs: Vec<usize> = (stride / 2..w).step_by(stride).collect();
     let ys: Vec<usize> = (stride / 2..h).step_by(stride).collect();
@@ -349,13 +361,8 @@ fn surface_normal(
             let z = level.depth[v * w + u];
             // A step of more than 5% of the depth a pixel is an edge, not a slope.
             let off = u.abs_diff(x).max(v.abs_diff(y)) as Real;
-            if z >= cfg.depth_min && z <= cfg.depth_max && (z - z0).abs() <= 0.05 * z0 * off {
-                let z = z as f64;
-                points.push(Vector3::new(
-                    (u as f64 - k.cx) * z / k.fx,
-                    (v as f64 - k.cy) * z / k.fy,
-                    z,
-                ));
+            if cfg.uses_depth(z) && (z - z0).abs() <= 0.05 * z0 * off {
+                points.push(lift(k, u, v, z));
             }
         }
     }
