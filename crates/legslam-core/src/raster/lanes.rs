@@ -376,13 +376,13 @@ mod avx2 {
                     _mm256_sub_ps(x, _mm256_mul_ps(n, s(expf::LN2_HI))),
                     _mm256_mul_ps(n, s(expf::LN2_LO)),
                 );
-                let q = expf::Q;
+                let c = expf::Q;
                 let r2 = _mm256_mul_ps(r, r);
-                let low = _mm256_add_ps(_mm256_mul_ps(s(q[3]), r), s(q[4]));
-                let high = _mm256_add_ps(_mm256_mul_ps(s(q[1]), r), s(q[2]));
+                let low = _mm256_add_ps(_mm256_mul_ps(s(c[3]), r), s(c[4]));
+                let high = _mm256_add_ps(_mm256_mul_ps(s(c[1]), r), s(c[2]));
                 let q = _mm256_add_ps(
                     _mm256_add_ps(low, _mm256_mul_ps(r2, high)),
-                    _mm256_mul_ps(_mm256_mul_ps(r2, r2), s(q[0])),
+                    _mm256_mul_ps(_mm256_mul_ps(r2, r2), s(c[0])),
                 );
                 let y = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(q, r2), r), s(1.0));
                 let e = _mm256_slli_epi32::<23>(_mm256_add_epi32(
