@@ -3,10 +3,10 @@
 with SLAM's mapper options (`SLAMConfig`, K = 64 features on a smooth random grid) and 10
 iterations after each keyframe; then `MapperCore.train(1)` timed, median over `--iters`.
 
-`cargo bench --bench mapper` times the engine's own binary on a map grown its way; a change to
-the engine can gain there and not here (2026-11-27: 13% against nothing), so engine changes are
-measured here too, the old and the new build alternating (`PYTHONPATH=OLD/python` runs another
-checkout's build).
+`cargo bench --bench mapper` times the engine's own binary; a change to the engine can gain
+there and lose here, on the same map (2026-11-27: a shorter exponential, 13% faster there and 9%
+slower here), so engine changes are measured here too, the old and the new build alternating
+(`PYTHONPATH=OLD/python` runs another checkout's build).
 
     python benches/bench_mapper.py [SEQUENCE] [--iters N] [--every N]
 """
