@@ -4,9 +4,9 @@ with SLAM's mapper options (`SLAMConfig`, K = 64 features on a smooth random gri
 iterations after each keyframe; then `MapperCore.train(1)` timed, median over `--iters`.
 
 `cargo bench --bench mapper` times the engine's own binary; a change to the engine can gain
-there and lose here, on a map grown the same way (2026-11-27: a shorter exponential, 13% faster there and 9%
-slower here), so engine changes are measured here too, the old and the new build alternating
-(`PYTHONPATH=OLD/python` runs another checkout's build).
+there and lose here, on a map grown the same way (2026-11-27: a shorter exponential, 13% faster
+there and 9% slower here), so engine changes are measured here too, the old and the new build
+alternating (`PYTHONPATH=OLD/python` runs another checkout's build).
 
 `--bench-map` grows the engine bench's map instead: its options (the engine's defaults with 4
 levels, SH degree 3, grow stride 2) and 7-Scenes depth as the sensor wrote it (not registered
