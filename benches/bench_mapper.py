@@ -8,9 +8,9 @@ there and lose here, on a map grown the same way (2026-11-27: a shorter exponent
 there and 9% slower here), so engine changes are measured here too, the old and the new build
 alternating (`PYTHONPATH=OLD/python` runs another checkout's build).
 
-`--bench-map` grows the engine bench's map instead: its options (the engine's defaults with 4
-levels, SH degree 3, grow stride 2) and 7-Scenes depth as the sensor wrote it (not registered
-to the colour camera), read from the sequence's files as that bench reads them.
+`--bench-map` grows the engine bench's map instead (7-Scenes only): its options (the engine's
+defaults with 4 levels, SH degree 3, grow stride 2) and the depth as the sensor wrote it, not
+registered to the colour camera, as that bench reads it.
 
     python benches/bench_mapper.py [SEQUENCE] [--iters N] [--every N] [--bench-map]
 """
@@ -40,50 +40,35 @@ def feature_grid(rng: np.random.Generator, k: int) -> np.ndarray:
 BENCH_OPTIONS = {"levels": 4, "sh_degree": 3, "num_features": 64, "grow_stride": 2}
 
 
-def bench_frames(folder: Path, every: int):
-    """Every `every`th 7-Scenes frame as the engine's bench reads it: colour, depth in metres as
-    the sensor wrote it (0 and 65535 invalid), the pose file, and the bench's intrinsics."""
-    import cv2
-    from types import SimpleNamespace
-
-    K = np.array([[585.0, 0, 320.0], [0, 585.0, 240.0], [0, 0, 1]])
-    for i in range(0, 1000, every):
-        stem = folder / f"frame-{i:06d}"
-        rgb = cv2.imread(f"{stem}.color.jpg")
-        depth = cv2.imread(f"{stem}.depth.png", cv2.IMREAD_UNCHANGED)
-        if rgb is None or depth is None:
-            raise SystemExit(f"--bench-map reads 7-Scenes files: {stem}.color.jpg / .depth.png missing")
-        depth = np.where(depth == 65535, 0, depth).astype(np.float32) / 1000
-        yield SimpleNamespace(rgb=cv2.cvtColor(rgb, cv2.COLOR_BGR2RGB), depth=depth, K=K,
-                              pose=np.loadtxt(f"{stem}.pose.txt"))
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", nargs="?", default=str(DEFAULT))
     ap.add_argument("--iters", type=int, default=40, help="timed iterations")
     ap.add_argument("--every", type=int, default=12, help="every this many frames a keyframe")
     ap.add_argument("--bench-map", action="store_true",
-                    help="the map `cargo bench --bench mapper` grows (7-Scenes files only)")
+                    help="the map `cargo bench --bench mapper` grows (7-Scenes only)")
     args = ap.parse_args()
     if not Path(args.sequence).exists():
         print(f"no sequence at {args.sequence} (the shared data folder beside the repository)")
         return 1
     from legslam import _core
     from legslam.datasets import open as open_dataset
+    from legslam.datasets import sevenscenes
     from legslam.slam import SLAMConfig
 
     cfg = SLAMConfig()
-    if args.bench_map:
-        frames, options = bench_frames(Path(args.sequence), args.every), BENCH_OPTIONS
-    else:
-        ds = open_dataset(args.sequence)
-        frames = (ds[i] for i in range(0, len(ds), args.every))
-        options = cfg.mapper_options(ds[0].depth.shape[1])
+    # The bench reads 7-Scenes as the sensor wrote it: given the depth camera's intrinsics, the
+    # loader takes the folder as registered and leaves depth and poses the depth camera's.
+    ds = open_dataset(args.sequence, stride=args.every,
+                      intrinsics=sevenscenes.DEFAULT_K if args.bench_map else None)
+    if args.bench_map and ds.format != sevenscenes.SevenScenesSequence.format:
+        print(f"--bench-map grows the engine bench's 7-Scenes map; {args.sequence} is {ds.format}")
+        return 1
+    options = BENCH_OPTIONS if args.bench_map else cfg.mapper_options(ds[0].depth.shape[1])
     mapper = _core.MapperCore(options, threads=2)
     rng = np.random.default_rng(1)
     began = time.perf_counter()
-    for f in frames:
+    for f in ds:
         if f.pose is None:
             continue
         kf, _ = mapper.add_keyframe(f.rgb.astype(np.float32) / 255, f.depth, f.K, f.pose)
