@@ -132,10 +132,11 @@ fn camera() -> Camera {
     Camera::new(intr, &w2c).unwrap()
 }
 
-fn options(simd: Simd, feature_scale: usize) -> RenderOptions {
+fn options(simd: Simd, feature_scale: usize, for_backward: bool) -> RenderOptions {
     RenderOptions {
         simd,
         feature_scale,
+        for_backward,
         ..Default::default()
     }
 }
@@ -151,7 +152,7 @@ fn pass(k: usize, scale: usize, simd: Simd, backward: bool) -> impl FnMut() {
     let mut scratch = BackwardScratch::default();
     let mut grads = Gradients::default();
     move || {
-        render_into(&g, &cam, &options(simd, scale), &mut r).unwrap();
+        render_into(&g, &cam, &options(simd, scale, backward), &mut r).unwrap();
         if backward {
             let image_grads = ImageGrads {
                 color: Some(&d_color),

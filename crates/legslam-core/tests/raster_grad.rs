@@ -61,9 +61,11 @@ fn loss(s: &Scene, deg: usize, scale: usize, w: &Weights) -> f64 {
 }
 
 fn opts(deg: usize, feature_scale: usize) -> RenderOptions {
+    // As a training loop renders (raster_kept.rs: the same gradients without).
     RenderOptions {
         sh_degree: deg,
         feature_scale,
+        for_backward: true,
         ..Default::default()
     }
 }

@@ -7,37 +7,18 @@
 
 mod common;
 
-use common::{hard_scene, random_scene, Rng, Scene};
-use legslam_core::raster::{
-    avx2_available, backward, render, Gradients, ImageGrads, RenderOptions, Rendered, Simd,
-};
+use common::{hard_scene, random_scene, render_and_backward, Scene};
+use legslam_core::raster::{avx2_available, render, Gradients, RenderOptions, Rendered, Simd};
 
 fn run(s: &Scene, sh_degree: usize, scale: usize, simd: Simd, seed: u64) -> (Rendered, Gradients) {
     let opts = RenderOptions {
         sh_degree,
         simd,
         feature_scale: scale,
+        for_backward: seed % 2 == 0,
         ..Default::default()
     };
-    let r = render(&s.gaussians(), &s.camera(), &opts).unwrap();
-    let npix = r.width * r.height;
-    let mut rng = Rng::new(seed);
-    let mut noise = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.normal() as f32).collect() };
-    let feature_pix = r.feature_width * r.feature_height;
-    let (dc, dd, da, df) = (
-        noise(npix * 3),
-        noise(npix),
-        noise(npix),
-        noise(feature_pix * s.k),
-    );
-    let grads = ImageGrads {
-        color: Some(&dc),
-        depth: Some(&dd),
-        alpha: Some(&da),
-        features: (s.k > 0).then_some(&df[..]),
-    };
-    let g = backward(&s.gaussians(), &s.camera(), &r, &grads).unwrap();
-    (r, g)
+    render_and_backward(s, &opts, seed)
 }
 
 fn bits(v: &[f32]) -> Vec<u32> {

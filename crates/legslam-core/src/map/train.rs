@@ -435,6 +435,7 @@ impl Mapper {
         let cam = camera(&kf.pose, intr)?;
         let opts = RenderOptions {
             feature_scale: 1 << (lf - li),
+            for_backward: true,
             ..self.options(true, with_features)
         };
         // The render's buffers are the scratch's, taken for the iteration and put back.

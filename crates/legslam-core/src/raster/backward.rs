@@ -8,7 +8,9 @@
 
 use rayon::prelude::*;
 
-use super::composite::{for_each_group, prefetch, prefetch_ahead, TileRect, TILE_LANES};
+use super::composite::{
+    cover_kept, for_each_group, prefetch, prefetch_ahead, TileRect, TILE_LANES,
+};
 use super::forward::{split_chunks, Layer};
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 use super::lanes::Avx2;
@@ -137,6 +139,7 @@ pub fn backward_into(
         },
         k: if coarse { 0 } else { k },
         cfg,
+        kept_falloffs: opts.for_backward,
     };
     walk_layer(opts.simd, &main, &mut scratch.main);
     if coarse {
@@ -150,6 +153,7 @@ pub fn backward_into(
             },
             k,
             cfg,
+            kept_falloffs: opts.for_backward,
         };
         walk_layer(opts.simd, &features, &mut scratch.coarse);
     }
@@ -349,6 +353,8 @@ struct TileJob<'a> {
     /// Feature channels the layer composited.
     k: usize,
     cfg: &'a RasterConfig,
+    /// Whether the forward pass kept the layer's falloffs.
+    kept_falloffs: bool,
 }
 
 /// One tile's image gradients and forward results, per pixel, structure of arrays (indexed like
@@ -452,6 +458,11 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
     slots[walked * stride..].fill(0.0);
     let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
     let gf = job.grads.features.filter(|_| k > 0);
+    // The forward pass's falloffs, when it kept them: a group at a time, in the same order.
+    let kept = job
+        .kept_falloffs
+        .then(|| &st.falloffs[t / st.grid.tiles_x][st.falloff_start[t]..]);
+    let mut group = 0;
     for (j, &gi) in list[..walked].iter().enumerate() {
         prefetch_ahead(list, j, &st.splats, job.features, k);
         let s = &st.splats[gi as usize];
@@ -470,7 +481,14 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
         let mut touched = false;
         for_each_group(s, &r, |grp| {
             let lp = grp.lp;
-            let cv = grp.cover::<L>(s, &cols, cfg);
+            let cv = match kept {
+                Some(kept) => {
+                    let falloff = L::load(&kept[group * LANES..]);
+                    group += 1;
+                    cover_kept(s, L::load(&cols[grp.gx..]), falloff, cfg)
+                }
+                None => grp.cover::<L>(s, &cols, cfg),
+            };
             let ok = L::and(cv.ok, L::below(j as u32, &tg.end[lp..]));
             if L::bits(ok) == 0 {
                 return;

@@ -104,6 +104,21 @@ pub(crate) fn cover<L: Lanes>(
     }
 }
 
+/// [`cover`] from the falloff the forward pass kept for the group (zero in the lanes it did
+/// not cover, whose raw alpha then falls below `alpha_min`, which is positive): the same
+/// decisions and values, without the exponential.
+#[inline(always)]
+pub(crate) fn cover_kept<L: Lanes>(s: &Splat, px: L, falloff: L, cfg: &RasterConfig) -> Cover<L> {
+    let raw = L::splat(s.opacity).mul(falloff);
+    Cover {
+        ok: L::splat(cfg.alpha_min).le(raw),
+        alpha: raw.min(L::splat(cfg.alpha_max)),
+        falloff,
+        dx: px.sub(L::splat(s.xy.x)),
+        capped: raw.gt(L::splat(cfg.alpha_max)),
+    }
+}
+
 /// Eight consecutive pixels of a row, from a column of the tile that a Gaussian's extent
 /// reaches; lanes past its extent (or the tile) are masked out.
 #[derive(Clone, Copy)]
@@ -229,8 +244,10 @@ impl TileAcc {
 
 /// Composites the tile's list `list` (front to back) into `acc`: Gaussian-major, so that only
 /// the pixels inside each Gaussian's span are visited, eight at a time; every pixel still sees
-/// its Gaussians in depth order. `features` is [N, k].
+/// its Gaussians in depth order. `features` is [N, k]. With `falloffs`, appends each group's
+/// exponential there (zero in the lanes not covered), for [`cover_kept`].
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn composite<L: Lanes>(
     acc: &mut TileAcc,
     list: &[u32],
@@ -239,6 +256,7 @@ pub(crate) fn composite<L: Lanes>(
     k: usize,
     r: &TileRect,
     cfg: &RasterConfig,
+    mut falloffs: Option<&mut Vec<Real>>,
 ) {
     let cols = r.columns();
     let (zero, one) = (L::splat(0.0), L::splat(1.0));
@@ -257,6 +275,11 @@ pub(crate) fn composite<L: Lanes>(
         for_each_group(s, r, |g| {
             let lp = g.lp;
             let c = g.cover::<L>(s, &cols, cfg);
+            if let Some(kept) = falloffs.as_mut() {
+                let at = kept.len();
+                kept.resize(at + LANES, 0.0);
+                L::select(c.ok, c.falloff, zero).store(&mut kept[at..]);
+            }
             let done = L::load(&acc.done[lp..]);
             let live = L::and_not(c.ok, done.gt(zero));
             if L::bits(live) == 0 {

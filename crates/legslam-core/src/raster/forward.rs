@@ -74,6 +74,13 @@ pub(crate) struct Layer {
     pub pixel_end: Vec<u32>,
     /// Per pixel: final transmittance.
     pub pixel_t: Vec<Real>,
+    /// Per row of tiles, the falloff exp(-sigma) of every group of eight pixels its tiles
+    /// walked, in walking order (zero where a lane was not covered), when the render was made
+    /// `for_backward` (empty otherwise): the backward pass reads them instead of evaluating the
+    /// exponential again.
+    pub falloffs: Vec<Vec<Real>>,
+    /// Per tile, where its groups start in its row's `falloffs`.
+    pub falloff_start: Vec<usize>,
 }
 
 impl Layer {
@@ -89,6 +96,7 @@ impl Layer {
         *self = Layer {
             splats: std::mem::take(&mut self.splats),
             rects: std::mem::take(&mut self.rects),
+            falloffs: std::mem::take(&mut self.falloffs),
             ..Default::default()
         };
         self.splats.clear();
@@ -181,7 +189,9 @@ pub fn render_into(
         alpha: &mut out.alpha,
         features: if coarse { &mut [] } else { &mut out.features },
     };
-    composite_layer(&mut st.main, simd, g.features, main_k, images, &opts.config);
+    let keep = opts.for_backward;
+    let cfg = &opts.config;
+    composite_layer(&mut st.main, simd, g.features, main_k, images, cfg, keep);
     if coarse {
         let images = Images {
             color: &mut [],
@@ -189,7 +199,7 @@ pub fn render_into(
             alpha: &mut [],
             features: &mut out.features,
         };
-        composite_layer(&mut st.coarse, simd, g.features, k, images, &opts.config);
+        composite_layer(&mut st.coarse, simd, g.features, k, images, cfg, keep);
     }
     out.width = w;
     out.height = h;
@@ -208,7 +218,8 @@ struct Images<'a> {
 }
 
 /// Bins a projected layer and composites it, one row of tiles at a time (its pixels are
-/// contiguous in every image), `k` feature channels of `features` ([N, k]).
+/// contiguous in every image), `k` feature channels of `features` ([N, k]); with `keep`, keeps
+/// the falloffs for the backward pass.
 fn composite_layer(
     layer: &mut Layer,
     simd: Simd,
@@ -216,11 +227,18 @@ fn composite_layer(
     k: usize,
     images: Images,
     cfg: &RasterConfig,
+    keep: bool,
 ) {
     let (w, h, grid) = (layer.width, layer.height, layer.grid);
     layer.bins = bin(&grid, &layer.rects, &layer.splats);
     layer.pixel_end.resize(w * h, 0);
     layer.pixel_t.resize(w * h, 0.0);
+    // Rows are only ever added: a training loop alternates pyramid levels, and a row dropped
+    // would be grown again, a page fault at a time.
+    if layer.falloffs.len() < grid.tiles_y {
+        layer.falloffs.resize_with(grid.tiles_y, Vec::new);
+    }
+    layer.falloff_start.resize(grid.len(), 0);
     let rows = TILE * w;
     let n = grid.tiles_y;
     let outs: Vec<_> = split_chunks(images.color, rows * 3, n)
@@ -230,19 +248,24 @@ fn composite_layer(
         .zip(split_chunks(images.features, rows * k, n))
         .zip(split_chunks(&mut layer.pixel_end, rows, n))
         .zip(split_chunks(&mut layer.pixel_t, rows, n))
+        .zip(layer.falloffs.iter_mut())
+        .zip(layer.falloff_start.chunks_mut(grid.tiles_x))
         .enumerate()
         .collect();
     let (bins, splats) = (&layer.bins, &layer.splats[..]);
-    outs.into_par_iter()
-        .for_each(|(ty, (((((col, dep), alp), fea), end), tr))| {
+    outs.into_par_iter().for_each(
+        |(ty, (((((((col, dep), alp), fea), end), tr), fo), starts))| {
             let mut acc = TileAcc::new(k);
+            fo.clear();
             for tx in 0..grid.tiles_x {
                 let t = ty * grid.tiles_x + tx;
                 let r = TileRect::new(&grid, t, w, h);
                 let list = bins.list(t);
                 acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
+                starts[tx] = fo.len();
                 if !list.is_empty() {
-                    composite_tile(simd, &mut acc, list, splats, features, k, &r, cfg);
+                    let kept = keep.then_some(&mut *fo);
+                    composite_tile(simd, &mut acc, list, splats, features, k, &r, cfg, kept);
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -267,7 +290,8 @@ fn composite_layer(
                     }
                 }
             }
-        });
+        },
+    );
 }
 
 /// Projects every Gaussian into the main layer's splats and rects (culled ones get an empty
@@ -400,14 +424,15 @@ fn composite_tile(
     k: usize,
     r: &TileRect,
     cfg: &RasterConfig,
+    falloffs: Option<&mut Vec<Real>>,
 ) {
     #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
     if simd == Simd::Avx2 {
         // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
-        return unsafe { composite_avx2(acc, list, splats, features, k, r, cfg) };
+        return unsafe { composite_avx2(acc, list, splats, features, k, r, cfg, falloffs) };
     }
     let _ = simd;
-    composite::<Portable>(acc, list, splats, features, k, r, cfg)
+    composite::<Portable>(acc, list, splats, features, k, r, cfg, falloffs)
 }
 
 /// [`composite`] compiled with AVX2.
@@ -425,6 +450,7 @@ unsafe fn composite_avx2(
     k: usize,
     r: &TileRect,
     cfg: &RasterConfig,
+    falloffs: Option<&mut Vec<Real>>,
 ) {
-    composite::<Avx2>(acc, list, splats, features, k, r, cfg)
+    composite::<Avx2>(acc, list, splats, features, k, r, cfg, falloffs)
 }

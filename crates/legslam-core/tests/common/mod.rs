@@ -2,7 +2,10 @@
 #![allow(dead_code)]
 
 use legslam_core::camera::{se3, Intrinsics, Pose};
-use legslam_core::raster::{sh, Camera, Gaussians, RasterConfig};
+use legslam_core::raster::{
+    backward, render, sh, Camera, Gaussians, Gradients, ImageGrads, RasterConfig, RenderOptions,
+    Rendered,
+};
 use legslam_core::Real;
 use nalgebra::{Matrix2, Matrix3, Quaternion, Rotation3, UnitQuaternion, Vector3};
 
@@ -301,4 +304,43 @@ fn legslam_core_vec(v: Vector3<f64>) -> glam::Vec3 {
 #[cfg(feature = "f64")]
 fn legslam_core_vec(v: Vector3<f64>) -> glam::DVec3 {
     glam::DVec3::new(v.x, v.y, v.z)
+}
+
+/// Renders `s` with `opts` and runs the backward pass of random image gradients (normal, from
+/// `seed`) on every output.
+pub fn render_and_backward(s: &Scene, opts: &RenderOptions, seed: u64) -> (Rendered, Gradients) {
+    let r = render(&s.gaussians(), &s.camera(), opts).unwrap();
+    let npix = r.width * r.height;
+    let mut rng = Rng::new(seed);
+    let mut noise = |n: usize| -> Vec<Real> { (0..n).map(|_| rng.normal() as Real).collect() };
+    let feature_pix = r.feature_width * r.feature_height;
+    let (dc, dd, da, df) = (
+        noise(npix * 3),
+        noise(npix),
+        noise(npix),
+        noise(feature_pix * s.k),
+    );
+    let grads = ImageGrads {
+        color: Some(&dc),
+        depth: Some(&dd),
+        alpha: Some(&da),
+        features: (s.k > 0).then_some(&df[..]),
+    };
+    let g = backward(&s.gaussians(), &s.camera(), &r, &grads).unwrap();
+    (r, g)
+}
+
+/// Every gradient array of `g` by name.
+pub fn gradient_arrays(g: &Gradients) -> [(&'static str, &[Real]); 9] {
+    [
+        ("means", &g.means),
+        ("log_scales", &g.log_scales),
+        ("quats", &g.quats),
+        ("opacity_logits", &g.opacity_logits),
+        ("sh", &g.sh),
+        ("features grad", &g.features),
+        ("means2d", &g.means2d),
+        ("contribution", &g.contribution),
+        ("pose", &g.pose),
+    ]
 }
