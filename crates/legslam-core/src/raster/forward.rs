@@ -257,12 +257,12 @@ fn composite_layer(
         |(ty, (((((((col, dep), alp), fea), end), tr), fo), starts))| {
             let mut acc = TileAcc::new(k);
             fo.clear();
-            for tx in 0..grid.tiles_x {
+            for (tx, start) in starts.iter_mut().enumerate() {
                 let t = ty * grid.tiles_x + tx;
                 let r = TileRect::new(&grid, t, w, h);
                 let list = bins.list(t);
                 acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
-                starts[tx] = fo.len();
+                *start = fo.len();
                 if !list.is_empty() {
                     let kept = keep.then_some(&mut *fo);
                     composite_tile(simd, &mut acc, list, splats, features, k, &r, cfg, kept);
