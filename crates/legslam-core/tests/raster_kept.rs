@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{gradient_arrays, hard_scene, random_scene, render_and_backward};
+use common::{bits, gradient_arrays, hard_scene, random_scene, render_and_backward};
 use legslam_core::raster::{avx2_available, RenderOptions, Simd};
 
 #[test]
@@ -45,11 +45,6 @@ fn kept_falloffs_give_the_gradients_of_evaluated_ones() {
                     for ((name, a), (_, b)) in
                         gradient_arrays(&gk).into_iter().zip(gradient_arrays(&ge))
                     {
-                        let bits = |v: &[_]| {
-                            v.iter()
-                                .map(|x: &legslam_core::Real| x.to_bits())
-                                .collect::<Vec<_>>()
-                        };
                         assert_eq!(bits(a), bits(b), "{what}: {name}");
                     }
                     assert!(

@@ -1,7 +1,8 @@
 //! Front-to-back compositing of one tile, eight pixels of a row at a time, written once over
 //! [`Lanes`] and run by the portable or the AVX2 implementation. [`cover`] is the one place that
-//! decides which pixels a Gaussian covers and how much: the backward pass calls it too, so that
-//! both passes make the same decisions, bit for bit.
+//! decides which pixels a Gaussian covers and how much: the backward pass calls it too, or reads
+//! back what it computed ([`cover_kept`]), so that both passes make the same decisions, bit for
+//! bit.
 
 use super::forward::Splat;
 use super::lanes::{Lanes, LANES};

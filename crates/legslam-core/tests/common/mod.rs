@@ -330,6 +330,11 @@ pub fn render_and_backward(s: &Scene, opts: &RenderOptions, seed: u64) -> (Rende
     (r, g)
 }
 
+/// The values' bit patterns, to compare results exactly.
+pub fn bits(v: &[Real]) -> Vec<u64> {
+    v.iter().map(|x| x.to_bits() as u64).collect()
+}
+
 /// Every gradient array of `g` by name.
 pub fn gradient_arrays(g: &Gradients) -> [(&'static str, &[Real]); 9] {
     [
