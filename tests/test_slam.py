@@ -403,6 +403,30 @@ def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
     assert len(slam.keyframe_frames) <= 3, slam.keyframe_frames
 
 
+def test_real_time_makes_keyframes_no_closer_than_its_minimum_gap():
+    # A camera that passes `keyframe_translation` every frame: the synchronous map takes every
+    # frame, a mapping thread one every `realtime_keyframe_min_gap` frames.
+    from legslam.slam.keyframes import KeyframePolicy
+    from legslam.slam.trajectory import KeyframeView
+
+    def keyframes(**options):
+        policy, last, made = KeyframePolicy(SLAMConfig(**options)), None, []
+        for i in range(20):
+            pose = np.eye(4)
+            pose[0, 3] = 0.2 * i
+            if policy.wants(i, pose, 1.0, last, map_empty=False, coverage_counts=True):
+                last = KeyframeView(pose, None, None, frame=i)
+                made.append(i)
+        return made
+
+    assert keyframes() == list(range(20))
+    assert keyframes(mapping_thread=True) == [0, 5, 10, 15]
+    assert keyframes(mapping_thread=True, realtime_keyframe_min_gap=3) == list(range(0, 20, 3))
+    assert keyframes(mapping_thread=True, realtime_keyframe_min_gap=1) == list(range(20))
+    with pytest.raises(ValueError, match="realtime_keyframe_min_gap"):
+        SLAMConfig(realtime_keyframe_min_gap=0)
+
+
 def test_real_time_trains_on_after_the_frames_for_its_share_of_the_run(scene):
     seq = open_dataset(scene)
 

@@ -48,10 +48,11 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="map in a worker thread: the frame rate is the tracker's, the map gets "
                         f"the iterations the spare CPU allows, at {d.realtime_lr_scale:g} times the "
                         f"learning rates ({d.realtime_geometry_lr_scale:g} times for the "
-                        "Gaussians' positions and shapes), and at the end trains on for "
-                        f"{d.final_time:g} times as long as the frames took (config: "
+                        "Gaussians' positions and shapes), with no keyframe within "
+                        f"{d.realtime_keyframe_min_gap} frames of the last, and at the end trains "
+                        f"on for {d.final_time:g} times as long as the frames took (config: "
                         "mapping_thread, realtime_lr_scale, realtime_geometry_lr_scale, "
-                        "final_time)")
+                        "realtime_keyframe_min_gap, final_time)")
     p.add_argument("--pace", type=float, nargs="?", const=1.0, default=None, metavar="SPEED",
                    help="play the recording as its camera delivered it: no frame before its "
                         "timestamp says (SPEED times the recorded speed, default 1), so that "

@@ -234,6 +234,13 @@ class SLAMConfig:
     #: not (34.26). The built-in scene in real time (4 iterations while frames come in, then 100)
     #: lost 0.1-0.25 dB (28.38-28.50 against 28.63) with depth L1 2.5 against 3.0 cm.
     realtime_geometry_lr_scale: float = 3.0
+    #: With `mapping_thread`: no keyframe sooner than this many frames after the last. A camera
+    #: moving about 1 m/s passes `keyframe_translation` every 3 frames, and a keyframe's work
+    #: (encoding, covisibility alignments, its place) ten times a second put a real-time run up
+    #: to a second behind a 30 Hz camera (a Replica render at 4 times its speed: 280-342 of 500
+    #: frames late; with 5, 6 late, the same map and trajectory). 7-Scenes never made two
+    #: keyframes less than 8 frames apart, the built-in scene 5.
+    realtime_keyframe_min_gap: int = 5
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
     #: tracker's, and the map gets the iterations the spare CPU allows, `mapping_batch` at a
     #: time, on a thread pool of its own). Low overlap then makes a keyframe only once the
@@ -450,7 +457,7 @@ _RANGES = {
     "map_iters_keyframe": (0, _INF), "map_iters_frame": (0, _INF), "final_iters": (0, _INF),
     "final_iters_per_frame": (0.0, _INF),
     "final_time": (0.0, _INF), "final_lr_factor": (1e-6, 1.0), "realtime_lr_scale": (1e-2, 1e2),
-    "realtime_geometry_lr_scale": (1e-2, 1e2),
+    "realtime_geometry_lr_scale": (1e-2, 1e2), "realtime_keyframe_min_gap": (1, _INF),
     "mapping_batch": (1, _INF), "mapping_threads": (0, _INF),
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (0, _INF),
     "jump_residual_ratio": (1.0, _INF),

@@ -21,7 +21,8 @@ def rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
 class KeyframePolicy:
     """Thresholds from the config: `keyframe_translation` (m), `keyframe_rotation` (degrees),
     `keyframe_overlap` (share of the frame's measured pixels the map covers) and
-    `keyframe_max_gap` (frames)."""
+    `keyframe_max_gap` (frames); with a mapping thread, none within `realtime_keyframe_min_gap`
+    frames of the last."""
 
     def __init__(self, config):
         self.config = config
@@ -35,6 +36,8 @@ class KeyframePolicy:
         c = self.config
         if last is None or map_empty:
             return True
+        if c.mapping_thread and frame - last.frame < c.realtime_keyframe_min_gap:
+            return False
         moved = np.linalg.norm(pose[:3, 3] - last.pose[:3, 3])
         return bool(moved > c.keyframe_translation
                     or rotation_deg(last.pose, pose) > c.keyframe_rotation
