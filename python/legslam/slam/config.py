@@ -238,7 +238,7 @@ class SLAMConfig:
     #: moving about 1 m/s passes `keyframe_translation` every 3 frames, and a keyframe's work
     #: (encoding, covisibility alignments, its place) ten times a second put a real-time run up
     #: to a second behind a 30 Hz camera (a Replica render at 4 times its speed: 280-342 of 500
-    #: frames late; with 5, 6 late, the same map and trajectory). 7-Scenes never made two
+    #: frames late; with 5, 6 late, as good a map and trajectory). 7-Scenes never made two
     #: keyframes less than 8 frames apart, the built-in scene none less than 5.
     realtime_keyframe_min_gap: int = 5
     #: Map in a worker thread while this one tracks (real time: the frame rate is the
