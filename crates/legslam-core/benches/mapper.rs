@@ -4,13 +4,15 @@
 //! as in a SLAM run), the SLAM's mapper options at 640x480 (training at 320x240, SH degree 3,
 //! K = 64 features on a smooth synthetic patch grid). Then single iterations (render + loss +
 //! backward + step) are timed, per phase, on 2 threads, with the portable compositing and the
-//! AVX2 one alternately, and on a second map grown the same way with pruning by contribution.
+//! vector one (AVX2 or NEON) alternately, and on a second map grown the same way with pruning
+//! by contribution.
 //!
 //! cargo bench -p legslam-core --bench mapper
 //! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
 //! (default 10), LEGSLAM_BENCH_ITERS (timed iterations per round, default 20),
 //! LEGSLAM_BENCH_PRUNED (0 skips the second map), LEGSLAM_BENCH_PORTABLE (0 skips the portable
-//! path where the CPU has AVX2: the fast path alone, e.g. for `perf record -D` past the setup),
+//! path where the CPU has a vector one: the fast path alone, e.g. for `perf record -D` past the
+//! setup),
 //! LEGSLAM_BENCH_SPARSE_ADAM (set: the mapper option `adam_sparse`; SLAM's default, and the
 //! bench's, is dense Adam).
 
@@ -22,7 +24,7 @@ use std::time::Instant;
 
 use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::map::{FeatureGrid, Mapper, MapperConfig};
-use legslam_core::raster::avx2_available;
+use legslam_core::raster::{native_simd, Simd};
 use legslam_core::rng::Rng;
 use legslam_core::Real;
 
@@ -125,23 +127,24 @@ fn main() {
         );
         mapper
     };
-    // The map with the portable and the AVX2 compositing (the same bits, so alternating them
-    // trains the map as either would), and one grown with pruning by contribution at 1.6 per
-    // million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0 skips it), on AVX2
-    // where the CPU has it.
+    // The map with the portable and the CPU's vector compositing (AVX2 or NEON: the same bits,
+    // so alternating them trains the map as either would), and one grown with pruning by
+    // contribution at 1.6 per million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0
+    // skips it), on the vector path where the CPU has one.
+    let vector = native_simd().map(|s| if s == Simd::Neon { "neon" } else { "avx2" });
     let mut mappers = vec![grow(config.clone())];
     let mut variants: Vec<(&str, usize, bool)> = Vec::new();
-    if env("LEGSLAM_BENCH_PORTABLE", 1) != 0 || !avx2_available() {
+    if env("LEGSLAM_BENCH_PORTABLE", 1) != 0 || vector.is_none() {
         variants.push(("portable", 0, false));
     }
-    if avx2_available() {
-        variants.push(("avx2", 0, true));
+    if let Some(name) = vector {
+        variants.push((name, 0, true));
     }
     if env("LEGSLAM_BENCH_PRUNED", 1) != 0 {
         let mut pruned = config.clone();
         pruned.prune.min_contribution = 1.6;
         mappers.push(grow(pruned));
-        variants.push(("pruned", 1, avx2_available()));
+        variants.push(("pruned", 1, vector.is_some()));
     }
     let mut phases = vec![[(); 6].map(|_| Vec::new()); variants.len()];
     pool.install(|| {

@@ -18,8 +18,8 @@ use std::sync::LazyLock;
 use common::{compare, samples, variant};
 use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::raster::{
-    avx2_available, backward_into, render, render_into, BackwardScratch, Camera, Gaussians,
-    Gradients, ImageGrads, RenderOptions, Rendered, Simd,
+    backward_into, native_simd, render, render_into, BackwardScratch, Camera, Gaussians, Gradients,
+    ImageGrads, RenderOptions, Rendered, Simd,
 };
 use legslam_core::Real;
 
@@ -174,11 +174,13 @@ fn main() {
         r.radii.len()
     );
     let n = samples(10);
-    let simds: &[(&str, Simd)] = if avx2_available() {
-        &[("portable", Simd::Portable), ("avx2", Simd::Avx2)]
-    } else {
-        eprintln!("no AVX2 on this CPU: the portable path only");
-        &[("portable", Simd::Portable)]
+    let simds: &[(&str, Simd)] = match native_simd() {
+        Some(Simd::Avx2) => &[("portable", Simd::Portable), ("avx2", Simd::Avx2)],
+        Some(Simd::Neon) => &[("portable", Simd::Portable), ("neon", Simd::Neon)],
+        _ => {
+            eprintln!("no AVX2 or NEON on this CPU: the portable path only");
+            &[("portable", Simd::Portable)]
+        }
     };
     for backward in [false, true] {
         for (k, scale) in [(0, 1), (64, 1), (64, 4)] {

@@ -6,14 +6,11 @@
 mod common;
 
 use common::{bits, gradient_arrays, hard_scene, random_scene, render_and_backward};
-use legslam_core::raster::{avx2_available, RenderOptions, Simd};
+use legslam_core::raster::{native_simd, RenderOptions, Simd};
 
 #[test]
 fn kept_falloffs_give_the_gradients_of_evaluated_ones() {
-    let mut simds = vec![Simd::Portable];
-    if avx2_available() {
-        simds.push(Simd::Avx2);
-    }
+    let simds: Vec<Simd> = [Simd::Portable].into_iter().chain(native_simd()).collect();
     for seed in 0..4u64 {
         let (w, h) = [(64, 48), (37, 29), (100, 17), (16, 16)][seed as usize];
         let k = [0, 5, 8, 19][seed as usize];

@@ -1,6 +1,7 @@
-//! The AVX2 rasterizer against the portable one: every rendered image and every gradient the
-//! same bits, on random and hard scenes, with and without features, at every SH degree and
-//! with odd image sizes (partial tiles). Runs where the CPU has AVX2; the portable path itself
+//! The CPU's vector rasterizer (AVX2 on x86-64, NEON on aarch64) against the portable one:
+//! every rendered image and every gradient the same bits, on random and hard scenes, with and
+//! without features, at every SH degree and with odd image sizes (partial tiles). Runs where
+//! the CPU has one of them; the portable path itself
 //! is checked against the f64 reference (raster_reference.rs) and by finite differences
 //! (raster_grad.rs, in f64 builds).
 #![cfg(not(feature = "f64"))]
@@ -8,7 +9,9 @@
 mod common;
 
 use common::{bits, gradient_arrays, hard_scene, random_scene, render_and_backward, Scene};
-use legslam_core::raster::{avx2_available, render, Gradients, RenderOptions, Rendered, Simd};
+use legslam_core::raster::{
+    avx2_available, native_simd, neon_available, render, Gradients, RenderOptions, Rendered, Simd,
+};
 
 fn run(s: &Scene, sh_degree: usize, scale: usize, simd: Simd, seed: u64) -> (Rendered, Gradients) {
     let opts = RenderOptions {
@@ -22,11 +25,11 @@ fn run(s: &Scene, sh_degree: usize, scale: usize, simd: Simd, seed: u64) -> (Ren
 }
 
 #[test]
-fn avx2_renders_and_differentiates_the_portable_bits() {
-    if !avx2_available() {
-        eprintln!("no AVX2 on this CPU: only the portable path runs here");
+fn the_vector_path_renders_and_differentiates_the_portable_bits() {
+    let Some(simd) = native_simd() else {
+        eprintln!("no AVX2 or NEON on this CPU: only the portable path runs here");
         return;
-    }
+    };
     let mut scenes = Vec::new();
     for seed in 0..4 {
         let (w, h) = [(64, 48), (37, 29), (100, 17), (16, 16)][seed as usize];
@@ -35,7 +38,7 @@ fn avx2_renders_and_differentiates_the_portable_bits() {
         scenes.push((hard_scene(seed + 10, w, h, 1, k), 1, 1 + seed as usize % 2));
     }
     for (i, (s, deg, scale)) in scenes.iter().enumerate() {
-        let (ra, ga) = run(s, *deg, *scale, Simd::Avx2, i as u64);
+        let (ra, ga) = run(s, *deg, *scale, simd, i as u64);
         let (rp, gp) = run(s, *deg, *scale, Simd::Portable, i as u64);
         assert!(
             ra.alpha.iter().any(|&a| a > 0.5),
@@ -60,12 +63,17 @@ fn avx2_renders_and_differentiates_the_portable_bits() {
 }
 
 #[test]
-fn asking_for_avx2_without_it_is_an_error() {
+fn asking_for_a_vector_path_the_cpu_lacks_is_an_error() {
     let s = random_scene(1, 10, 16, 16, 0, 0);
-    let opts = RenderOptions {
-        simd: Simd::Avx2,
-        ..Default::default()
-    };
-    let r = render(&s.gaussians(), &s.camera(), &opts);
-    assert_eq!(r.is_ok(), avx2_available());
+    for (simd, here) in [
+        (Simd::Avx2, avx2_available()),
+        (Simd::Neon, neon_available()),
+    ] {
+        let opts = RenderOptions {
+            simd,
+            ..Default::default()
+        };
+        let r = render(&s.gaussians(), &s.camera(), &opts);
+        assert_eq!(r.is_ok(), here, "{simd:?}");
+    }
 }

@@ -14,6 +14,8 @@ use super::composite::{
 use super::forward::{split_chunks, Layer};
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 use super::lanes::Avx2;
+#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+use super::lanes::Neon;
 use super::lanes::{Lanes, Portable, Simd, LANES};
 use super::math::{V2, V3};
 use super::project::{backward_one, conic_to_cov_grad, geometry, ParamGrads, Pinhole, ScreenGrads};
@@ -428,6 +430,10 @@ fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots:
     if simd == Simd::Avx2 {
         // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
         return unsafe { tile_backward_avx2(job, t, tg, slots) };
+    }
+    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+    if simd == Simd::Neon {
+        return walk_tile::<Neon>(job, t, tg, slots);
     }
     let _ = simd;
     walk_tile::<Portable>(job, t, tg, slots)

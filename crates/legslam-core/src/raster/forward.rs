@@ -7,6 +7,8 @@ use rayon::prelude::*;
 use super::composite::{composite, TileAcc, TileRect};
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 use super::lanes::Avx2;
+#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+use super::lanes::Neon;
 use super::lanes::{Portable, Simd};
 use super::math::{ceil_in, floor_end_in, sigmoid, V2, V3};
 use super::project::{coarser, color_raw, cutoff_level, extent, extent_bound, geometry, Pinhole};
@@ -430,6 +432,10 @@ fn composite_tile(
     if simd == Simd::Avx2 {
         // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
         return unsafe { composite_avx2(acc, list, splats, features, k, r, cfg, falloffs) };
+    }
+    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+    if simd == Simd::Neon {
+        return composite::<Neon>(acc, list, splats, features, k, r, cfg, falloffs);
     }
     let _ = simd;
     composite::<Portable>(acc, list, splats, features, k, r, cfg, falloffs)

@@ -1,9 +1,10 @@
 //! Eight pixels at a time: the operations the compositing kernels are written in, as a trait
-//! with two implementations. [`Portable`] works on plain arrays and runs everywhere (the
-//! fallback, and the reference the other is tested against); [`Avx2`] uses AVX2 registers and
-//! is chosen at run time where the CPU has them. Both perform the same IEEE operations in the
-//! same order (no fused multiply-add; the same polynomial `exp`; the same tree for horizontal
-//! sums), so a kernel gives identical bits on either.
+//! with three implementations. [`Portable`] works on plain arrays and runs everywhere (the
+//! fallback, and the reference the others are tested against); [`Avx2`] uses AVX2 registers and
+//! is chosen at run time where an x86-64 CPU has them; [`Neon`] uses two NEON registers, which
+//! every aarch64 CPU has. All perform the same IEEE operations in the same order (no fused
+//! multiply-add; the same polynomial `exp`; the same tree for horizontal sums), so a kernel
+//! gives identical bits on any of them.
 
 use crate::Real;
 
@@ -13,26 +14,41 @@ pub(crate) const LANES: usize = 8;
 /// Which implementation of [`Lanes`] the rasterizer runs.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Simd {
-    /// AVX2 where the CPU has it, else portable.
+    /// The CPU's vector path ([`native_simd`]) where it has one, else portable.
     #[default]
     Auto,
     /// The portable implementation, on any CPU.
     Portable,
     /// AVX2 (an error where the CPU lacks it, or in f64 builds).
     Avx2,
+    /// NEON (an error off aarch64, or in f64 builds).
+    Neon,
 }
 
 impl Simd {
-    /// The implementation to run: `Portable` or `Avx2`.
+    /// The implementation to run: `Portable`, `Avx2` or `Neon`.
     pub fn resolve(self) -> Result<Simd, String> {
         match self {
-            Simd::Auto if avx2_available() => Ok(Simd::Avx2),
-            Simd::Auto => Ok(Simd::Portable),
+            Simd::Auto => Ok(native_simd().unwrap_or(Simd::Portable)),
             Simd::Avx2 if !avx2_available() => {
                 Err("this CPU (or an f64 build) has no AVX2 rasterizer path".into())
             }
+            Simd::Neon if !neon_available() => {
+                Err("this CPU (or an f64 build) has no NEON rasterizer path".into())
+            }
             s => Ok(s),
         }
+    }
+}
+
+/// The vector implementation this CPU runs (`Avx2` or `Neon`), if it has one.
+pub fn native_simd() -> Option<Simd> {
+    if avx2_available() {
+        Some(Simd::Avx2)
+    } else if neon_available() {
+        Some(Simd::Neon)
+    } else {
+        None
     }
 }
 
@@ -46,6 +62,12 @@ pub fn avx2_available() -> bool {
     {
         false
     }
+}
+
+/// Whether the NEON path can run here: on every aarch64 CPU (NEON is part of the
+/// architecture's base), never in f64 builds.
+pub fn neon_available() -> bool {
+    cfg!(all(target_arch = "aarch64", not(feature = "f64")))
 }
 
 /// Eight lanes of `Real` and the operations on them.
@@ -469,6 +491,217 @@ mod avx2 {
     }
 }
 
+#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+pub(crate) use neon::Neon;
+
+#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+#[allow(unused_unsafe)] // some NEON intrinsics are safe to call, depending on the Rust version
+mod neon {
+    //! NEON is part of aarch64's base architecture, so these run on every CPU of the target.
+    //! Eight lanes are two quad registers, lanes 0-3 in the first. Minimum and the exponential's
+    //! clamps are compares and selects, as `minps` and `maxps` treat NaN and equal operands
+    //! (NEON's `fmin` and `fmax` do not).
+    use std::arch::aarch64::*;
+
+    use super::{expf, Lanes, LANES};
+
+    #[derive(Clone, Copy, Debug)]
+    pub(crate) struct Neon(float32x4_t, float32x4_t);
+
+    #[derive(Clone, Copy, Debug)]
+    pub(crate) struct Mask(uint32x4_t, uint32x4_t);
+
+    impl Neon {
+        #[inline(always)]
+        fn zip(self, o: Self, f: impl Fn(float32x4_t, float32x4_t) -> float32x4_t) -> Self {
+            Neon(f(self.0, o.0), f(self.1, o.1))
+        }
+
+        #[inline(always)]
+        fn test(self, o: Self, f: impl Fn(float32x4_t, float32x4_t) -> uint32x4_t) -> Mask {
+            Mask(f(self.0, o.0), f(self.1, o.1))
+        }
+    }
+
+    /// `a` where `a < b`, else `b` (as `minps`).
+    #[inline(always)]
+    fn min4(a: float32x4_t, b: float32x4_t) -> float32x4_t {
+        unsafe { vbslq_f32(vcltq_f32(a, b), a, b) }
+    }
+
+    /// `a` where `a > b`, else `b` (as `maxps`).
+    #[inline(always)]
+    fn max4(a: float32x4_t, b: float32x4_t) -> float32x4_t {
+        unsafe { vbslq_f32(vcgtq_f32(a, b), a, b) }
+    }
+
+    #[inline(always)]
+    fn exp4(x: float32x4_t) -> float32x4_t {
+        unsafe {
+            let s = vdupq_n_f32;
+            let x = min4(max4(x, s(expf::LOW)), s(expf::HIGH));
+            let n = vsubq_f32(
+                vaddq_f32(vmulq_f32(x, s(expf::LOG2E)), s(expf::ROUND)),
+                s(expf::ROUND),
+            );
+            let r = vsubq_f32(
+                vsubq_f32(x, vmulq_f32(n, s(expf::LN2_HI))),
+                vmulq_f32(n, s(expf::LN2_LO)),
+            );
+            let mut p = s(expf::P[0]);
+            for c in &expf::P[1..] {
+                p = vaddq_f32(vmulq_f32(p, r), s(*c));
+            }
+            let y = vaddq_f32(vaddq_f32(vmulq_f32(p, vmulq_f32(r, r)), r), s(1.0));
+            // n is a whole number: truncating it converts it exactly.
+            let e = vshlq_n_s32::<23>(vaddq_s32(vcvtq_s32_f32(n), vdupq_n_s32(127)));
+            vmulq_f32(y, vreinterpretq_f32_s32(e))
+        }
+    }
+
+    /// Bit l set where lane l of the four is set.
+    #[inline(always)]
+    fn bits4(m: uint32x4_t) -> u32 {
+        const WEIGHTS: [u32; 4] = [1, 2, 4, 8];
+        unsafe { vaddvq_u32(vandq_u32(m, vld1q_u32(WEIGHTS.as_ptr()))) }
+    }
+
+    impl Lanes for Neon {
+        type Mask = Mask;
+
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            unsafe { Neon(vdupq_n_f32(v), vdupq_n_f32(v)) }
+        }
+        #[inline(always)]
+        fn load(s: &[f32]) -> Self {
+            assert!(s.len() >= LANES);
+            unsafe { Neon(vld1q_f32(s.as_ptr()), vld1q_f32(s.as_ptr().add(4))) }
+        }
+        #[inline(always)]
+        fn store(self, s: &mut [f32]) {
+            assert!(s.len() >= LANES);
+            unsafe {
+                vst1q_f32(s.as_mut_ptr(), self.0);
+                vst1q_f32(s.as_mut_ptr().add(4), self.1);
+            }
+        }
+        #[inline(always)]
+        fn add(self, o: Self) -> Self {
+            self.zip(o, |a, b| unsafe { vaddq_f32(a, b) })
+        }
+        #[inline(always)]
+        fn sub(self, o: Self) -> Self {
+            self.zip(o, |a, b| unsafe { vsubq_f32(a, b) })
+        }
+        #[inline(always)]
+        fn mul(self, o: Self) -> Self {
+            self.zip(o, |a, b| unsafe { vmulq_f32(a, b) })
+        }
+        #[inline(always)]
+        fn div(self, o: Self) -> Self {
+            self.zip(o, |a, b| unsafe { vdivq_f32(a, b) })
+        }
+        #[inline(always)]
+        fn min(self, o: Self) -> Self {
+            self.zip(o, min4)
+        }
+        #[inline(always)]
+        fn lt(self, o: Self) -> Mask {
+            self.test(o, |a, b| unsafe { vcltq_f32(a, b) })
+        }
+        #[inline(always)]
+        fn le(self, o: Self) -> Mask {
+            self.test(o, |a, b| unsafe { vcleq_f32(a, b) })
+        }
+        #[inline(always)]
+        fn gt(self, o: Self) -> Mask {
+            self.test(o, |a, b| unsafe { vcgtq_f32(a, b) })
+        }
+        #[inline(always)]
+        fn below(j: u32, end: &[u32]) -> Mask {
+            assert!(end.len() >= LANES);
+            unsafe {
+                let j = vdupq_n_u32(j);
+                Mask(
+                    vcgtq_u32(vld1q_u32(end.as_ptr()), j),
+                    vcgtq_u32(vld1q_u32(end.as_ptr().add(4)), j),
+                )
+            }
+        }
+        #[inline(always)]
+        fn and(a: Mask, b: Mask) -> Mask {
+            unsafe { Mask(vandq_u32(a.0, b.0), vandq_u32(a.1, b.1)) }
+        }
+        #[inline(always)]
+        fn and_not(a: Mask, b: Mask) -> Mask {
+            unsafe { Mask(vbicq_u32(a.0, b.0), vbicq_u32(a.1, b.1)) }
+        }
+        #[inline(always)]
+        fn bits(m: Mask) -> u32 {
+            bits4(m.0) | (bits4(m.1) << 4)
+        }
+        #[inline(always)]
+        fn select(m: Mask, a: Self, b: Self) -> Self {
+            unsafe { Neon(vbslq_f32(m.0, a.0, b.0), vbslq_f32(m.1, a.1, b.1)) }
+        }
+        #[inline(always)]
+        fn set_where(m: Mask, v: u32, out: &mut [u32]) {
+            assert!(out.len() >= LANES);
+            unsafe {
+                let (p, new) = (out.as_mut_ptr(), vdupq_n_u32(v));
+                vst1q_u32(p, vbslq_u32(m.0, new, vld1q_u32(p)));
+                vst1q_u32(p.add(4), vbslq_u32(m.1, new, vld1q_u32(p.add(4))));
+            }
+        }
+        #[inline(always)]
+        fn exp(self) -> Self {
+            Neon(exp4(self.0), exp4(self.1))
+        }
+        #[inline(always)]
+        fn hsum(self) -> f32 {
+            unsafe {
+                // [v0+v4, v1+v5, v2+v6, v3+v7], then (s0 + s2) + (s1 + s3).
+                let s = vaddq_f32(self.0, self.1);
+                let pair = vadd_f32(vget_low_f32(s), vget_high_f32(s));
+                vget_lane_f32::<0>(pair) + vget_lane_f32::<1>(pair)
+            }
+        }
+        #[inline(always)]
+        fn axpy(out: &mut [f32], w: f32, f: &[f32]) {
+            let n = out.len().min(f.len());
+            let mut i = 0;
+            unsafe {
+                let wv = vdupq_n_f32(w);
+                while i + 4 <= n {
+                    let o = out.as_mut_ptr().add(i);
+                    let v = vmulq_f32(wv, vld1q_f32(f.as_ptr().add(i)));
+                    vst1q_f32(o, vaddq_f32(vld1q_f32(o), v));
+                    i += 4;
+                }
+            }
+            for (o, v) in out[i..n].iter_mut().zip(&f[i..n]) {
+                *o += w * v;
+            }
+        }
+        #[inline(always)]
+        fn dot(a: &[f32], b: &[f32]) -> f32 {
+            let n = a.len().min(b.len());
+            let mut i = 0;
+            let mut acc = Neon::splat(0.0);
+            while i + LANES <= n {
+                acc = acc.add(Neon::load(&a[i..]).mul(Neon::load(&b[i..])));
+                i += LANES;
+            }
+            let tail = a[i..n]
+                .iter()
+                .zip(&b[i..n])
+                .fold(0.0, |s, (x, y)| s + x * y);
+            acc.hsum() + tail
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -504,7 +737,22 @@ mod tests {
     #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
     #[target_feature(enable = "avx2")]
     unsafe fn compare_avx2() {
-        fn same(a: Avx2, b: Portable, what: &str) {
+        compare::<Avx2>()
+    }
+
+    /// The same for NEON (every aarch64 CPU has it).
+    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+    #[test]
+    fn neon_gives_the_portable_bits() {
+        compare::<Neon>()
+    }
+
+    /// Random lanes through every operation of `L`, against the portable implementation.
+    #[cfg(not(feature = "f64"))]
+    #[allow(dead_code)] // on a CPU family with no vector implementation
+    #[inline(always)]
+    fn compare<L: Lanes>() {
+        fn same<L: Lanes>(a: L, b: Portable, what: &str) {
             let mut x = [0.0; LANES];
             a.store(&mut x);
             assert_eq!(x.map(f32::to_bits), b.0.map(f32::to_bits), "{what}");
@@ -512,15 +760,17 @@ mod tests {
         let mut rng = Rng::new(11);
         for round in 0..2000 {
             let mut draw = || -> [f32; LANES] {
-                std::array::from_fn(|_| match round % 4 {
+                std::array::from_fn(|_| match round % 5 {
                     0 => rng.uniform(-8.0, 0.5) as f32,
                     1 => rng.uniform(-1e3, 1e3) as f32,
                     2 => (rng.uniform(-1.0, 1.0) * 1e-3) as f32,
+                    // Ties, signed zeros and NaN, where minimum and clamps could differ.
+                    3 => [0.0, -0.0, 1.0, f32::NAN, -100.0, 0.5][rng.below(6)],
                     _ => rng.normal() as f32,
                 })
             };
             let (xa, xb) = (draw(), draw());
-            let (a, b) = (Avx2::load(&xa), Avx2::load(&xb));
+            let (a, b) = (L::load(&xa), L::load(&xb));
             let (pa, pb) = (Portable(xa), Portable(xb));
             same(a.add(b), pa.add(pb), "add");
             same(a.sub(b), pa.sub(pb), "sub");
@@ -530,7 +780,7 @@ mod tests {
             same(a.exp(), pa.exp(), "exp");
             assert_eq!(a.hsum().to_bits(), pa.hsum().to_bits(), "hsum");
             let vs: [[f32; LANES]; 8] = std::array::from_fn(|_| draw());
-            let sums = Avx2::hsum8(vs.map(|x| Avx2::load(&x)));
+            let sums = L::hsum8(vs.map(|x| L::load(&x)));
             let one_by_one = vs.map(|x| Portable(x).hsum());
             assert_eq!(
                 sums.map(f32::to_bits),
@@ -542,28 +792,24 @@ mod tests {
                 (a.le(b), pa.le(pb)),
                 (a.gt(b), pa.gt(pb)),
             ] {
-                assert_eq!(Avx2::bits(m), Portable::bits(pm), "compare");
-                same(
-                    Avx2::select(m, a, b),
-                    Portable::select(pm, pa, pb),
-                    "select",
-                );
-                let (m2, pm2) = (a.lt(Avx2::splat(0.0)), pa.lt(Portable::splat(0.0)));
+                assert_eq!(L::bits(m), Portable::bits(pm), "compare");
+                same(L::select(m, a, b), Portable::select(pm, pa, pb), "select");
+                let (m2, pm2) = (a.lt(L::splat(0.0)), pa.lt(Portable::splat(0.0)));
                 assert_eq!(
-                    Avx2::bits(Avx2::and_not(m, m2)),
+                    L::bits(L::and_not(m, m2)),
                     Portable::bits(Portable::and_not(pm, pm2))
                 );
                 assert_eq!(
-                    Avx2::bits(Avx2::and(m, m2)),
+                    L::bits(L::and(m, m2)),
                     Portable::bits(Portable::and(pm, pm2))
                 );
                 let mut ua: [u32; LANES] = std::array::from_fn(|l| l as u32 * 3);
                 let mut up = ua;
-                Avx2::set_where(m, 77, &mut ua);
+                L::set_where(m, 77, &mut ua);
                 Portable::set_where(pm, 77, &mut up);
                 assert_eq!(ua, up, "set_where");
                 assert_eq!(
-                    Avx2::bits(Avx2::below(9, &ua)),
+                    L::bits(L::below(9, &ua)),
                     Portable::bits(Portable::below(9, &up))
                 );
             }
@@ -571,13 +817,14 @@ mod tests {
             let va: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
             let vb: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
             assert_eq!(
-                Avx2::dot(&va, &vb).to_bits(),
+                L::dot(&va, &vb).to_bits(),
                 Portable::dot(&va, &vb).to_bits()
             );
             let (mut oa, mut op) = (vb.clone(), vb.clone());
-            Avx2::axpy(&mut oa, xa[0], &va);
+            L::axpy(&mut oa, xa[0], &va);
             Portable::axpy(&mut op, xa[0], &va);
-            assert_eq!(oa, op, "axpy");
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&oa), bits(&op), "axpy");
         }
     }
 

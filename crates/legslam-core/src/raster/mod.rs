@@ -22,7 +22,7 @@ mod tiles;
 pub use backward::{backward, backward_into, BackwardScratch};
 pub use config::{RasterConfig, TILE};
 pub use forward::{render, render_into};
-pub use lanes::{avx2_available, Simd};
+pub use lanes::{avx2_available, native_simd, neon_available, Simd};
 
 use crate::camera::{Intrinsics, Pose};
 use crate::Real;
