@@ -1,9 +1,8 @@
 //! The CPU's vector rasterizer (AVX2 on x86-64, NEON on aarch64) against the portable one:
 //! every rendered image and every gradient the same bits, on random and hard scenes, with and
 //! without features, at every SH degree and with odd image sizes (partial tiles). Runs where
-//! the CPU has one of them; the portable path itself
-//! is checked against the f64 reference (raster_reference.rs) and by finite differences
-//! (raster_grad.rs, in f64 builds).
+//! the CPU has one of them; the portable path itself is checked against the f64 reference
+//! (raster_reference.rs) and by finite differences (raster_grad.rs, in f64 builds).
 #![cfg(not(feature = "f64"))]
 
 mod common;
