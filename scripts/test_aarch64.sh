@@ -21,9 +21,12 @@ missing() {
 if ! command -v qemu-aarch64 > /dev/null || ! command -v aarch64-linux-gnu-gcc > /dev/null \
     || [ ! -d "$sysroot/lib" ]; then
     if command -v apt-get > /dev/null && [ "$(id -u)" = 0 ]; then
-        DEBIAN_FRONTEND=noninteractive apt-get install -y -q \
-            qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross > /dev/null \
-            || missing "apt-get could not install qemu-user and the aarch64 gcc"
+        packages=(qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross)
+        # Once more after refreshing the package lists (a fresh machine may have none).
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -q "${packages[@]}" > /dev/null 2>&1 \
+            || { apt-get update -q > /dev/null 2>&1 \
+                && DEBIAN_FRONTEND=noninteractive apt-get install -y -q "${packages[@]}" > /dev/null; } \
+            || missing "apt-get could not install ${packages[*]}"
     else
         missing "qemu-aarch64 and aarch64-linux-gnu-gcc are not installed (Debian: apt-get install qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross)"
     fi
