@@ -131,7 +131,7 @@ fn main() {
     // so alternating them trains the map as either would), and one grown with pruning by
     // contribution at 1.6 per million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0
     // skips it), on the vector path where the CPU has one.
-    let vector = native_simd().map(|s| if s == Simd::Neon { "neon" } else { "avx2" });
+    let vector = native_simd().map(Simd::name);
     let mut mappers = vec![grow(config.clone())];
     let mut variants: Vec<(&str, usize, bool)> = Vec::new();
     if env("LEGSLAM_BENCH_PORTABLE", 1) != 0 || vector.is_none() {

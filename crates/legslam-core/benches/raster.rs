@@ -174,14 +174,10 @@ fn main() {
         r.radii.len()
     );
     let n = samples(10);
-    let simds: &[(&str, Simd)] = match native_simd() {
-        Some(Simd::Avx2) => &[("portable", Simd::Portable), ("avx2", Simd::Avx2)],
-        Some(Simd::Neon) => &[("portable", Simd::Portable), ("neon", Simd::Neon)],
-        _ => {
-            eprintln!("no AVX2 or NEON on this CPU: the portable path only");
-            &[("portable", Simd::Portable)]
-        }
-    };
+    let simds: Vec<Simd> = [Simd::Portable].into_iter().chain(native_simd()).collect();
+    if simds.len() == 1 {
+        eprintln!("no AVX2 or NEON on this CPU: the portable path only");
+    }
     for backward in [false, true] {
         for (k, scale) in [(0, 1), (64, 1), (64, 4)] {
             for threads in [1, 2] {
@@ -205,10 +201,10 @@ fn main() {
                 }
                 let mut variants: Vec<_> = simds
                     .iter()
-                    .map(|&(name, simd)| {
+                    .map(|&simd| {
                         let mut run = pass(k, scale, simd, backward);
                         let pool = &pool;
-                        variant(name, move || pool.install(&mut run))
+                        variant(simd.name(), move || pool.install(&mut run))
                     })
                     .collect();
                 compare(&case, n, &mut variants);

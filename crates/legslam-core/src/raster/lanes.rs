@@ -39,6 +39,16 @@ impl Simd {
             s => Ok(s),
         }
     }
+
+    /// The implementation's name, as benchmarks print it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Simd::Auto => "auto",
+            Simd::Portable => "portable",
+            Simd::Avx2 => "avx2",
+            Simd::Neon => "neon",
+        }
+    }
 }
 
 /// The vector implementation this CPU runs (`Avx2` or `Neon`), if it has one.
