@@ -41,6 +41,7 @@ def _entries():
     tracker = _core.TrackerCore({"levels": 2, "finest_level": 0, "min_inliers": 10})
     reference = tracker.prepare_reference(rgb, depth, K, np.eye(4))
     odometry = _core.OdometryCore({"levels": 2, "finest_level": 0, "min_inliers": 10}, np.eye(4), True)
+    tsdf = _core.TsdfCore(0.05, 0.2, 64.0, 0.1, 10.0)
     g = _gaussians()
     rendered = _core.render(*g.values(), K, np.eye(4), W, H, 0, True, True, True)
     return {
@@ -66,6 +67,9 @@ def _entries():
         "TrackerCore.track": lambda: tracker.track(reference, rgb, depth, K, np.eye(4)),
         "OdometryCore": lambda: _core.OdometryCore({}, np.eye(4), True),
         "OdometryCore.step": lambda: odometry.step(rgb, depth, K),
+        "TsdfCore": lambda: _core.TsdfCore(0.05, 0.2, 64.0, 0.1, 10.0),
+        "TsdfCore.integrate": lambda: tsdf.integrate(depth, K, np.eye(4)),
+        "TsdfCore.raycast": lambda: tsdf.raycast(K, W, H, np.eye(4), depth),
         "pose_graph_options": lambda: _core.pose_graph_options({"robust_scale": 2.0}),
         "optimize_pose_graph": lambda: _core.optimize_pose_graph(
             np.stack([np.eye(4), np.eye(4)]), [(0, 1, np.eye(4), np.eye(6), "odometry")]),

@@ -1,14 +1,17 @@
 //! Bindings of the tracker (`legslam_core::track`), wrapped in Python by `legslam.tracking`.
 
 use legslam_core::camera::{Intrinsics, Pose};
-use legslam_core::track::{self, Color, Frame, Odometry, Reference, TrackResult, TrackerConfig};
-use numpy::{PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use legslam_core::track::{
+    self, Color, Frame, Odometry, Reference, TrackResult, TrackerConfig, Tsdf, TsdfConfig,
+};
+use numpy::{PyArray1, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use crate::convert::{
     array, bad, contiguous, engine_call, intrinsics, options_dict, options_from, pose, pose_array,
+    size,
 };
 use crate::pool;
 
@@ -296,8 +299,99 @@ impl PyOdometry {
     }
 }
 
+/// The fused surface volume (`legslam_core::track::Tsdf`); see `legslam.tracking.Surface`.
+#[pyclass(module = "legslam._core", name = "TsdfCore")]
+struct PyTsdf {
+    inner: Tsdf,
+}
+
+#[pymethods]
+impl PyTsdf {
+    #[new]
+    #[pyo3(signature = (voxel, truncation, max_weight, min_depth, max_depth))]
+    fn new(
+        py: Python<'_>,
+        voxel: f64,
+        truncation: f64,
+        max_weight: f32,
+        min_depth: f64,
+        max_depth: f64,
+    ) -> PyResult<Self> {
+        let cfg = TsdfConfig {
+            voxel,
+            truncation,
+            max_weight,
+            min_depth,
+            max_depth,
+        };
+        let inner = engine_call(py, || Tsdf::new(cfg))?;
+        Ok(PyTsdf { inner })
+    }
+
+    /// Fuses `depth` (float32 HxW metres, 0 = none) seen through `k` from `pose` (c2w).
+    fn integrate<'py>(
+        &mut self,
+        py: Python<'py>,
+        depth: &Bound<'py, PyAny>,
+        k: &Bound<'py, PyAny>,
+        pose_c2w: &Bound<'py, PyAny>,
+    ) -> PyResult<()> {
+        let depth = array::<f32, numpy::Ix2>(depth, "depth", &[None, None])?;
+        let kk = intrinsics(k, depth.shape()[1], depth.shape()[0])?;
+        let p = pose(pose_c2w, "pose")?;
+        let d = contiguous("depth", &depth)?;
+        let inner = &mut self.inner;
+        engine_call(py, || inner.integrate(d, &kk, &p))
+    }
+
+    /// The fused surface's depth (float32 height x width, 0 where none) through `k` from
+    /// `pose` (c2w); with `near` (float32 height x width), each ray where it has depth d
+    /// starts at d - 2 truncation.
+    #[pyo3(signature = (k, width, height, pose_c2w, near=None))]
+    fn raycast<'py>(
+        &self,
+        py: Python<'py>,
+        k: &Bound<'py, PyAny>,
+        width: i64,
+        height: i64,
+        pose_c2w: &Bound<'py, PyAny>,
+        near: Option<&Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let (w, h) = size(width, height)?;
+        let kk = intrinsics(k, w, h)?;
+        let p = pose(pose_c2w, "pose")?;
+        let near = near
+            .map(|a| array::<f32, numpy::Ix2>(a, "near", &[Some(h), Some(w)]))
+            .transpose()?;
+        let near = near.as_ref().map(|a| contiguous("near", a)).transpose()?;
+        let inner = &self.inner;
+        let out = engine_call(py, || {
+            let mut out = vec![0.0f32; w * h];
+            match near {
+                Some(d) => inner.raycast_near(&kk, &p, d, &mut out),
+                None => inner.raycast(&kk, &p, &mut out),
+            }
+            .map(|_| out)
+        })?;
+        Ok(PyArray1::from_vec(py, out).reshape([h, w])?.into_any())
+    }
+
+    /// Allocated voxel blocks.
+    #[getter]
+    fn blocks(&self) -> usize {
+        self.inner.blocks()
+    }
+
+    /// Bytes held by the voxels.
+    #[getter]
+    fn memory_bytes(&self) -> usize {
+        self.inner.memory_bytes()
+    }
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyTracker>()?;
+    m.add_class::<PyTsdf>()?;
     m.add_class::<PyTrackReference>()?;
     m.add_class::<PyTrackResult>()?;
     m.add_class::<PyOdometry>()?;

@@ -19,13 +19,16 @@
 //! pose that cannot be trusted.
 //!
 //! [`Odometry`] chains frame-to-frame tracking with a constant-velocity motion prior.
+//! [`Tsdf`] fuses tracked frames' depth into the surface a frame is tracked against.
 
 mod image;
 #[cfg(target_arch = "x86_64")]
 mod lanes;
 mod solve;
+mod tsdf;
 
 pub use image::{Color, Frame, Reference};
+pub use tsdf::{Tsdf, TsdfConfig};
 
 use nalgebra::{Matrix6, SymmetricEigen, Vector6};
 

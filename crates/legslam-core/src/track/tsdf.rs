@@ -1,0 +1,558 @@
+//! A truncated signed distance volume that fuses tracked frames' depth, and the depth it
+//! ray-casts from any pose: the tracker's reference surface (frame-to-model tracking, as
+//! KinectFusion's). Against the last frame's depth alone each frame inherits the last one's
+//! error; against the fused surface the noise of many frames averages out and a camera that
+//! comes back meets what it saw before.
+//!
+//! Voxels live in blocks of 8^3 allocated around measured surfaces only (a hash map from block
+//! coordinates), so memory follows the surface area seen, not the volume. Values are signed
+//! distances along the optical axis, divided by the truncation distance and clamped to [-1, 1],
+//! averaged over frames with a weight capped at `max_weight` (so the surface can still move).
+
+use std::collections::{HashMap, HashSet};
+use std::hash::{BuildHasherDefault, Hasher};
+
+use glam::{Mat3, Vec3};
+use rayon::prelude::*;
+
+use crate::camera::{se3, Intrinsics, Pose};
+
+/// Voxels along a block's side (`locate` divides by shifting).
+const SIDE: usize = 8;
+const BLOCK_VOXELS: usize = SIDE * SIDE * SIDE;
+/// Blocks along a chunk's side: the ray-cast crosses empty space a chunk at a time.
+const CHUNK: i32 = 4;
+
+/// Volume settings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TsdfConfig {
+    /// Voxel edge (m).
+    pub voxel: f64,
+    /// Truncation distance (m): how far in front of and behind a measured surface a frame
+    /// updates voxels.
+    pub truncation: f64,
+    /// Cap on a voxel's accumulated weight (frames).
+    pub max_weight: f32,
+    /// Depth range (m) that is fused and ray-cast.
+    pub min_depth: f64,
+    pub max_depth: f64,
+}
+
+impl Default for TsdfConfig {
+    fn default() -> Self {
+        TsdfConfig {
+            voxel: 0.01,
+            truncation: 0.04,
+            max_weight: 64.0,
+            min_depth: 0.1,
+            max_depth: 10.0,
+        }
+    }
+}
+
+impl TsdfConfig {
+    pub fn validate(&self) -> Result<(), String> {
+        let pos = |v: f64| v.is_finite() && v > 0.0;
+        if !pos(self.voxel) || !pos(self.truncation) {
+            return Err(format!(
+                "voxel and truncation must be positive, got {} and {}",
+                self.voxel, self.truncation
+            ));
+        }
+        if self.truncation < self.voxel {
+            return Err(format!(
+                "truncation ({}) must be at least one voxel ({})",
+                self.truncation, self.voxel
+            ));
+        }
+        if !(self.max_weight >= 1.0 && self.max_weight.is_finite()) {
+            return Err(format!(
+                "max_weight must be at least 1, got {}",
+                self.max_weight
+            ));
+        }
+        if !(pos(self.min_depth) && self.max_depth.is_finite() && self.max_depth > self.min_depth) {
+            return Err(format!(
+                "need 0 < min_depth < max_depth, got {} and {}",
+                self.min_depth, self.max_depth
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Per voxel (x fastest) its normalised signed distance and its weight, side by side: the
+/// ray-cast reads both from one cache line.
+#[derive(Clone)]
+struct Block([[f32; 2]; BLOCK_VOXELS]);
+
+impl Block {
+    fn empty() -> Self {
+        Block([[1.0, 0.0]; BLOCK_VOXELS])
+    }
+}
+
+/// Block coordinates packed 21 bits each (blocks of 8 cm reach +-84 km).
+type Key = u64;
+
+fn key(b: [i32; 3]) -> Key {
+    let m = (1u64 << 21) - 1;
+    ((b[0] as u64 & m) << 42) | ((b[1] as u64 & m) << 21) | (b[2] as u64 & m)
+}
+
+/// SplitMix64's finaliser over the packed key: the hash table indexes by the low bits, which
+/// of the key alone would be the z coordinate's.
+#[derive(Default)]
+struct KeyHasher(u64);
+
+impl Hasher for KeyHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(self.0.rotate_left(8) ^ b as u64);
+        }
+    }
+    fn write_u64(&mut self, v: u64) {
+        let mut z = v.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        self.0 = z ^ (z >> 31);
+    }
+    fn finish(&self) -> u64 {
+        self.0
+    }
+}
+
+type Index = HashMap<Key, u32, BuildHasherDefault<KeyHasher>>;
+type Chunks = HashSet<Key, BuildHasherDefault<KeyHasher>>;
+
+/// The fused volume.
+pub struct Tsdf {
+    cfg: TsdfConfig,
+    index: Index,
+    blocks: Vec<Block>,
+    /// Each block's coordinates (in blocks).
+    coords: Vec<[i32; 3]>,
+    /// Chunks holding at least one block.
+    chunks: Chunks,
+}
+
+/// A camera for the volume's loops: world-to-camera rotation and translation, the centre and
+/// the pinhole, in f32.
+struct View {
+    r_cw: Mat3,
+    t_cw: Vec3,
+    r_wc: Mat3,
+    centre: Vec3,
+    fx: f32,
+    fy: f32,
+    cx: f32,
+    cy: f32,
+}
+
+impl View {
+    fn new(k: &Intrinsics, pose: &Pose) -> Result<View, String> {
+        k.validate()?;
+        se3::validate_pose(pose, "pose")?;
+        let pose = se3::orthonormalize(pose);
+        let r = Mat3::from_cols_array(&[
+            pose[(0, 0)] as f32,
+            pose[(1, 0)] as f32,
+            pose[(2, 0)] as f32,
+            pose[(0, 1)] as f32,
+            pose[(1, 1)] as f32,
+            pose[(2, 1)] as f32,
+            pose[(0, 2)] as f32,
+            pose[(1, 2)] as f32,
+            pose[(2, 2)] as f32,
+        ]);
+        let centre = Vec3::new(
+            pose[(0, 3)] as f32,
+            pose[(1, 3)] as f32,
+            pose[(2, 3)] as f32,
+        );
+        Ok(View {
+            r_cw: r.transpose(),
+            t_cw: -(r.transpose() * centre),
+            r_wc: r,
+            centre,
+            fx: k.fx as f32,
+            fy: k.fy as f32,
+            cx: k.cx as f32,
+            cy: k.cy as f32,
+        })
+    }
+
+    /// World direction of pixel (u, v)'s ray, scaled so that its camera z is 1: a point at
+    /// `centre + t * dir` has depth `t`.
+    fn ray(&self, u: usize, v: usize) -> Vec3 {
+        let d = Vec3::new(
+            (u as f32 - self.cx) / self.fx,
+            (v as f32 - self.cy) / self.fy,
+            1.0,
+        );
+        self.r_wc * d
+    }
+}
+
+impl Tsdf {
+    pub fn new(cfg: TsdfConfig) -> Result<Tsdf, String> {
+        cfg.validate()?;
+        Ok(Tsdf {
+            cfg,
+            index: Index::default(),
+            blocks: Vec::new(),
+            coords: Vec::new(),
+            chunks: Chunks::default(),
+        })
+    }
+
+    pub fn config(&self) -> &TsdfConfig {
+        &self.cfg
+    }
+
+    /// Allocated blocks.
+    pub fn blocks(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Bytes held by the voxels.
+    pub fn memory_bytes(&self) -> usize {
+        self.blocks.len() * std::mem::size_of::<Block>()
+    }
+
+    /// Block and voxel of a world point, in voxel units `g = p / voxel`.
+    fn locate(g: Vec3) -> ([i32; 3], usize) {
+        let v = [floor(g.x), floor(g.y), floor(g.z)];
+        // SIDE is 8: shifting floors towards minus infinity, the mask is the remainder.
+        let b = v.map(|c| c >> 3);
+        let l = v.map(|c| (c & 7) as usize);
+        (b, l[0] + SIDE * (l[1] + SIDE * l[2]))
+    }
+
+    /// Fuses a depth image (metres, 0 or non-finite = no measurement; row-major, the size of
+    /// `k`) seen from `pose` (camera-to-world).
+    pub fn integrate(&mut self, depth: &[f32], k: &Intrinsics, pose: &Pose) -> Result<(), String> {
+        let view = View::new(k, pose)?;
+        let (w, h) = (k.width, k.height);
+        if depth.len() != w * h {
+            return Err(format!(
+                "depth has {} values, the intrinsics say {w}x{h}",
+                depth.len()
+            ));
+        }
+        let inv_voxel = (1.0 / self.cfg.voxel) as f32;
+        let trunc = self.cfg.truncation as f32;
+        // The blocks the band [d - trunc, d + trunc] of each measured pixel passes through,
+        // sampled at half a block along the ray (and at both ends).
+        let step = 0.5 * SIDE as f32 * self.cfg.voxel as f32;
+        let samples = (2.0 * trunc / step).ceil() as usize;
+        let mut keys: Vec<Key> = (0..h)
+            .into_par_iter()
+            .flat_map_iter(|v| {
+                let mut row = Vec::new();
+                for u in 0..w {
+                    let d = depth[v * w + u];
+                    if !depth_ok(&self.cfg, d) {
+                        continue;
+                    }
+                    let dir = view.ray(u, v);
+                    for s in 0..=samples {
+                        let t = (d - trunc + s as f32 * (2.0 * trunc / samples as f32)).max(0.0);
+                        let (b, _) = Self::locate((view.centre + t * dir) * inv_voxel);
+                        let kb = key(b);
+                        if row.last() != Some(&kb) {
+                            row.push(kb);
+                        }
+                    }
+                }
+                row
+            })
+            .collect();
+        keys.par_sort_unstable();
+        keys.dedup();
+        let mut touched = vec![false; self.blocks.len()];
+        for kb in keys {
+            let next = self.blocks.len() as u32;
+            let i = *self.index.entry(kb).or_insert(next) as usize;
+            if i == self.blocks.len() {
+                let b = unkey(kb);
+                self.blocks.push(Block::empty());
+                self.coords.push(b);
+                self.chunks.insert(chunk_key(b));
+                touched.push(true);
+            } else {
+                touched[i] = true;
+            }
+        }
+        let voxel = self.cfg.voxel as f32;
+        let (max_w, cfg) = (self.cfg.max_weight, self.cfg);
+        self.blocks
+            .par_iter_mut()
+            .zip(self.coords.par_iter())
+            .zip(touched.par_iter())
+            .for_each(|((block, b), &touched)| {
+                if !touched {
+                    return;
+                }
+                let origin = Vec3::new(b[0] as f32, b[1] as f32, b[2] as f32) * SIDE as f32;
+                // Camera coordinates of the first voxel's centre, and a voxel's step along
+                // each world axis.
+                let c0 = view.r_cw * ((origin + 0.5) * voxel) + view.t_cw;
+                let step = view.r_cw * voxel;
+                for (j, [sdf, wt]) in block.0.iter_mut().enumerate() {
+                    let (x, y, z) = (j % SIDE, (j / SIDE) % SIDE, j / (SIDE * SIDE));
+                    let c = c0
+                        + step.x_axis * x as f32
+                        + step.y_axis * y as f32
+                        + step.z_axis * z as f32;
+                    if c.z <= 0.0 || c.z.is_nan() {
+                        continue;
+                    }
+                    // The nearest pixel (libm's roundf is a call per voxel).
+                    let inv_z = 1.0 / c.z;
+                    let u = view.fx * c.x * inv_z + view.cx + 0.5;
+                    let v = view.fy * c.y * inv_z + view.cy + 0.5;
+                    if !(u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
+                        continue;
+                    }
+                    let d = depth[v as usize * w + u as usize];
+                    if !depth_ok(&cfg, d) {
+                        continue;
+                    }
+                    let dist = d - c.z;
+                    if dist < -trunc {
+                        continue;
+                    }
+                    let f = (dist / trunc).min(1.0);
+                    *sdf = (*sdf * *wt + f) / (*wt + 1.0);
+                    *wt = (*wt + 1.0).min(max_w);
+                }
+            });
+        Ok(())
+    }
+
+    /// The fused signed distance (m, positive in front of surfaces) at world point `p`,
+    /// interpolated between voxel centres; `None` where a voxel around it is unobserved.
+    pub fn distance(&self, p: [f64; 3]) -> Option<f64> {
+        let g = Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32) / self.cfg.voxel as f32;
+        let f = self.trilinear(g, &mut (Key::MAX, None))?;
+        Some(f as f64 * self.cfg.truncation)
+    }
+
+    /// The signed distance (m) of the voxel holding world point `p`; `None` where it is
+    /// unobserved. What the ray-cast marches through.
+    pub fn voxel_distance(&self, p: [f64; 3]) -> Option<f64> {
+        let g = Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32) / self.cfg.voxel as f32;
+        match self.voxel_at(g, &mut (Key::MAX, None))? {
+            (_, w) if w <= 0.0 => None,
+            (f, _) => Some(f as f64 * self.cfg.truncation),
+        }
+    }
+
+    /// Normalised distance and weight of the voxel holding voxel-unit point `g`, if its block
+    /// is allocated. `cache` holds the last block looked up.
+    fn voxel_at(&self, g: Vec3, cache: &mut (Key, Option<u32>)) -> Option<(f32, f32)> {
+        let (b, j) = Self::locate(g);
+        let kb = key(b);
+        if cache.0 != kb {
+            *cache = (kb, self.index.get(&kb).copied());
+        }
+        let block = &self.blocks[cache.1? as usize];
+        let [f, w] = block.0[j];
+        Some((f, w))
+    }
+
+    /// Trilinear distance at voxel-unit point `g` (voxel centres at half-integers); `None`
+    /// where any of the eight voxels is unobserved.
+    fn trilinear(&self, g: Vec3, cache: &mut (Key, Option<u32>)) -> Option<f32> {
+        let a = g - 0.5;
+        let base = Vec3::new(floor(a.x) as f32, floor(a.y) as f32, floor(a.z) as f32);
+        let f = a - base;
+        let mut acc = 0.0;
+        for c in 0..8 {
+            let o = Vec3::new((c & 1) as f32, ((c >> 1) & 1) as f32, (c >> 2) as f32);
+            let (s, w) = self.voxel_at(base + o + 0.5, cache)?;
+            if w <= 0.0 {
+                return None;
+            }
+            let wx = if c & 1 == 1 { f.x } else { 1.0 - f.x };
+            let wy = if (c >> 1) & 1 == 1 { f.y } else { 1.0 - f.y };
+            let wz = if c >> 2 == 1 { f.z } else { 1.0 - f.z };
+            acc += wx * wy * wz * s;
+        }
+        Some(acc)
+    }
+
+    /// Depth (m, along the optical axis) of the fused surface seen from `pose` through `k`,
+    /// into `out` (row-major, the size of `k`); 0 where no surface is found.
+    pub fn raycast(&self, k: &Intrinsics, pose: &Pose, out: &mut [f32]) -> Result<(), String> {
+        self.cast_all(k, pose, None, out)
+    }
+
+    /// As [`Tsdf::raycast`], but each ray through a pixel where `near` (a depth image the size
+    /// of `k`) has depth d starts at d - 2 truncation: the surface found near a measurement,
+    /// without marching through the space in front of it. Where the fused surface lies farther
+    /// in front of d, that ray finds none.
+    pub fn raycast_near(
+        &self,
+        k: &Intrinsics,
+        pose: &Pose,
+        near: &[f32],
+        out: &mut [f32],
+    ) -> Result<(), String> {
+        if near.len() != k.width * k.height {
+            return Err(format!(
+                "near has {} values, the intrinsics say {}x{}",
+                near.len(),
+                k.width,
+                k.height
+            ));
+        }
+        self.cast_all(k, pose, Some(near), out)
+    }
+
+    fn cast_all(
+        &self,
+        k: &Intrinsics,
+        pose: &Pose,
+        near: Option<&[f32]>,
+        out: &mut [f32],
+    ) -> Result<(), String> {
+        let view = View::new(k, pose)?;
+        let w = k.width;
+        if out.len() != w * k.height {
+            return Err(format!(
+                "output has {} values, the intrinsics say {w}x{}",
+                out.len(),
+                k.height
+            ));
+        }
+        let two_trunc = 2.0 * self.cfg.truncation as f32;
+        out.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+            for (u, o) in row.iter_mut().enumerate() {
+                let from = near
+                    .map(|d| d[v * w + u])
+                    .filter(|&d| depth_ok(&self.cfg, d))
+                    .map_or(0.0, |d| d - two_trunc);
+                *o = self.cast(&view, u, v, from);
+            }
+        });
+        Ok(())
+    }
+
+    /// March along pixel (u, v)'s ray over samples a voxel apart (`t = min_depth + n step`):
+    /// a block at a time through unallocated space and by the distance the volume guarantees
+    /// free inside blocks; at the first crossing from in front of a surface to behind it, back
+    /// over every sample since the last one in front, so that what is found is what a march
+    /// over every sample finds. The crossing is interpolated between the trilinear distances
+    /// at its two samples. The march begins at the first sample at or beyond depth `from`.
+    fn cast(&self, view: &View, u: usize, v: usize, from: f32) -> f32 {
+        let inv_voxel = (1.0 / self.cfg.voxel) as f32;
+        let dir = view.ray(u, v);
+        // Per unit of t, in voxels along the ray.
+        let g_dir = dir * inv_voxel;
+        let g0 = view.centre * inv_voxel;
+        let step = self.cfg.voxel as f32 / dir.length();
+        let trunc_voxels = (self.cfg.truncation / self.cfg.voxel) as f32;
+        let (t_min, t_max) = (self.cfg.min_depth as f32, self.cfg.max_depth as f32);
+        let last = ((t_max - t_min) / step).floor() as usize;
+        let mut cache = (Key::MAX, None);
+        // The last sample in front of a surface: (n, normalised distance).
+        let mut prev: Option<(usize, f32)> = None;
+        let mut fine = false;
+        let mut n = (-floor(-(from - t_min) / step)).max(0) as usize;
+        while n <= last {
+            let t = t_min + n as f32 * step;
+            let g = g0 + t * g_dir;
+            match self.voxel_at(g, &mut cache) {
+                None if !fine => {
+                    prev = None;
+                    let (b, _) = Self::locate(g);
+                    let cell = if self.chunks.contains(&chunk_key(b)) {
+                        SIDE
+                    } else {
+                        SIDE * CHUNK as usize
+                    };
+                    let exit = cell_exit(g, g_dir, t, cell as f32);
+                    n = (n + 1).max(-floor(-(exit - t_min) / step) as usize);
+                    continue;
+                }
+                Some((f, w)) if w > 0.0 && f > 0.0 => {
+                    prev = Some((n, f));
+                    n += if fine {
+                        1
+                    } else {
+                        ((0.8 * f * trunc_voxels) as usize).max(1)
+                    };
+                    continue;
+                }
+                Some((f, w)) if w > 0.0 => match prev {
+                    Some((np, _)) if !fine && np + 1 < n => {
+                        // Skipped samples may hold the first crossing: walk them.
+                        fine = true;
+                        n = np + 1;
+                        continue;
+                    }
+                    Some((np, fp)) => {
+                        let tp = t_min + np as f32 * step;
+                        let fp = self.trilinear(g0 + tp * g_dir, &mut cache).unwrap_or(fp);
+                        let f = self.trilinear(g, &mut cache).unwrap_or(f);
+                        let ts = if fp > f {
+                            tp + (t - tp) * fp / (fp - f)
+                        } else {
+                            t
+                        };
+                        return ts.clamp(tp, t);
+                    }
+                    // Behind a surface from the start, or seen from its back: no surface in
+                    // front.
+                    None if f < 0.0 => return 0.0,
+                    None => {}
+                },
+                // Unallocated (while walking back) or unobserved.
+                _ => prev = None,
+            }
+            n += 1;
+        }
+        0.0
+    }
+}
+
+fn depth_ok(cfg: &TsdfConfig, d: f32) -> bool {
+    d.is_finite() && d as f64 >= cfg.min_depth && d as f64 <= cfg.max_depth
+}
+
+fn unkey(k: Key) -> [i32; 3] {
+    // Sign-extend each 21-bit field.
+    let f = |s: u32| (((k >> s) as i64) << 43 >> 43) as i32;
+    [f(42), f(21), f(0)]
+}
+
+/// `x.floor()` as an integer, without libm's call (|x| < 2^31).
+#[inline]
+fn floor(x: f32) -> i32 {
+    let i = x as i32;
+    i - (x < i as f32) as i32
+}
+
+/// The chunk holding block `b`.
+fn chunk_key(b: [i32; 3]) -> Key {
+    key(b.map(|c| c.div_euclid(CHUNK)))
+}
+
+/// The ray parameter at which voxel-unit point `g = g0 + t g_dir` leaves its cell of the grid
+/// of `s` voxels.
+fn cell_exit(g: Vec3, g_dir: Vec3, t: f32, s: f32) -> f32 {
+    let c = g / s;
+    let lo = Vec3::new(floor(c.x) as f32, floor(c.y) as f32, floor(c.z) as f32) * s;
+    let mut dt = f32::INFINITY;
+    for a in 0..3 {
+        let d = g_dir[a];
+        if d > 1e-12 {
+            dt = dt.min((lo[a] + s - g[a]) / d);
+        } else if d < -1e-12 {
+            dt = dt.min((lo[a] - g[a]) / d);
+        }
+    }
+    t + dt.max(0.0)
+}
