@@ -286,9 +286,11 @@ class Drifting:
 def drifted_loop(encoder, room, loop_closure: bool, frames: int = 84, covisibility_edges: int = 0):
     K, view = room
     path = turn_in_place(frames, 360.0 / 72)  # a full turn and a bit more
-    # Frame to frame only (never the map: it would take the drift back by itself on return).
+    # Frame to frame only (never the map nor the fused surface: either would take the drift
+    # back by itself on return).
     cfg = SLAMConfig(features=False, final_iters=0, loop_closure=loop_closure, relocalise=False,
-                     min_reference_coverage=1.0, covisibility_edges=covisibility_edges)
+                     min_reference_coverage=1.0, covisibility_edges=covisibility_edges,
+                     surface_voxel=0)
     slam = SLAM(cfg, K, W, H, encoder=encoder)
     slam.tracking = Drifting(slam.tracking, 0.03, 0.001)
     for pose in path:

@@ -37,6 +37,7 @@ from .loop_closure import LoopClosure
 from .mapping import InlineMapping, ThreadedMapping
 from .place_recognition import Place, PlaceIndex
 from .relocalise import Relocaliser
+from .surface import Surface
 from .track_policy import Tracked, TrackingPolicy
 from .trajectory import KeyframeView, Trajectory, View
 
@@ -110,6 +111,8 @@ class SLAM:
         self._unplaced: dict[int, KeyframeView] = {}
         self._tracked_after: Optional[int] = None
         self._corrections: Optional[np.ndarray] = None  # of loops closed, not applied yet
+        self.surface = (Surface(c.surface_voxel, c.surface_truncation, self.depth_range, self.K_track)
+                        if c.surface_voxel > 0 and (c.surface_realtime or not c.mapping_thread) else None)
         self.keyframes = KeyframePolicy(c)
         self.trajectory = Trajectory()
         self.keyframe_frames: list[int] = []
@@ -264,6 +267,8 @@ class SLAM:
         if self._features is not None:
             self._features.collect()
         self._last_tracked = View(tracked.pose, small.rgb, small.depth)
+        if self.surface is not None:
+            self._last_tracked = self.surface.fuse(self._last_tracked)
         return keyframe
 
     def _keyframe_made(self, kf_id: int, view: KeyframeView) -> None:
@@ -307,6 +312,8 @@ class SLAM:
             return
         corrections, self._corrections = self._corrections, None
         self._mapping.correct_keyframes(corrections)
+        if self.surface is not None:
+            self.surface.correct(corrections[-1])
         poses = np.stack(self.loops.poses)
         for k in self.places.places if self.places is not None else ():
             self.places.set_pose(k, poses[k])
@@ -332,7 +339,8 @@ class SLAM:
 
     def trajectory_events(self) -> dict:
         """For metrics.json: the relocalisations, the loops closed and the loop edges rejected
-        (frame, keyframes, correction size), and what the keyframes' places take in memory."""
+        (frame, keyframes, correction size), and what the keyframes' places and the fused
+        surface take in memory."""
         out = {}
         if self.relocaliser is not None:
             out["relocalisations"] = [e.as_dict() for e in self.relocaliser.events]
@@ -344,6 +352,8 @@ class SLAM:
             out["rejected_covisibility_edges"] = list(self.loops.rejected_covisible)
         if self.places is not None:
             out["place_memory_mb"] = round(self.places.nbytes / 2 ** 20, 2)
+        if self.surface is not None:
+            out["surface_memory_mb"] = round(self.surface.memory_bytes / 2 ** 20, 2)
         return out
 
     @property

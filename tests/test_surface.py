@@ -1,0 +1,112 @@
+"""The fused surface a frame is tracked against (legslam.slam.surface): on the built-in scene,
+fusing noisy views brings the reference depth closer to the truth than one view's; a pose-graph
+correction leaves the surface where the camera sees it; the SLAM option turns it on and off.
+The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself against
+analytic scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from legslam import _core
+from legslam.datasets import open as open_dataset
+from legslam.slam import SLAM, SLAMConfig
+from legslam.slam.surface import Surface
+from legslam.slam.trajectory import View
+
+
+def views(scene, noise: float, seed: int = 0):
+    """The scene's frames as views at their true poses, depth with Gaussian noise (m)."""
+    rng = np.random.default_rng(seed)
+    seq = open_dataset(scene)
+    out = []
+    for i in range(len(seq)):
+        f = seq[i]
+        d = np.where(f.depth > 0, f.depth + noise * rng.standard_normal(f.depth.shape), 0)
+        out.append((View(f.pose, f.rgb, d.astype(np.float32)), f.depth, f.K))
+    return out
+
+
+def median_error(depth, truth):
+    both = (depth > 0) & (truth > 0)
+    assert both.mean() > 0.5
+    return float(np.median(np.abs(depth[both] - truth[both])))
+
+
+def test_fused_views_give_depth_nearer_the_truth_than_one_view(small_synthetic):
+    frames = views(small_synthetic, noise=0.01)
+    surface = Surface(0.01, 0.04, (0.1, 10.0), frames[0][2])
+    for view, _, _ in frames[:-1]:
+        surface.fuse(view)
+    last, truth, _ = frames[-1]
+    fused = surface.fuse(last)
+    assert fused.pose is last.pose and fused.rgb is last.rgb
+    one, many = median_error(last.depth, truth), median_error(fused.depth, truth)
+    assert many < 0.5 * one, f"fused {many * 100:.2f} cm against one view's {one * 100:.2f} cm"
+
+
+def test_a_correction_leaves_the_surface_where_the_camera_sees_it(small_synthetic):
+    frames = views(small_synthetic, noise=0.005)
+    K = frames[0][2]
+    plain, corrected = (Surface(0.01, 0.04, (0.1, 10.0), K) for _ in range(2))
+    for view, _, _ in frames[:6]:
+        plain.fuse(view)
+        corrected.fuse(view)
+    # The pose graph moves the world by C: poses after it are C @ pose.
+    c, s = np.cos(0.1), np.sin(0.1)
+    C = np.array([[c, -s, 0, 0.2], [s, c, 0, -0.1], [0, 0, 1, 0.05], [0, 0, 0, 1.0]])
+    corrected.correct(C)
+    view = frames[6][0]
+    expected = plain.fuse(view).depth
+    got = corrected.fuse(View(C @ view.pose, view.rgb, view.depth)).depth
+    assert np.abs(got - expected).max() < 1e-3
+    # Without the correction the moved pose would see another surface.
+    moved = Surface(0.01, 0.04, (0.1, 10.0), K)
+    for v, _, _ in frames[:6]:
+        moved.fuse(v)
+    stale = moved.fuse(View(C @ view.pose, view.rgb, view.depth)).depth
+    assert np.abs(stale - expected).max() > 0.01
+
+
+def test_the_slam_option_turns_the_surface_on_and_off(small_synthetic):
+    seq = open_dataset(small_synthetic)
+    f = seq[0]
+    base = dict(features=False, relocalise=False, loop_closure=False)
+    on = SLAM(SLAMConfig(**base), f.K, f.rgb.shape[1], f.rgb.shape[0])
+    off = SLAM(SLAMConfig(surface_voxel=0, **base), f.K, f.rgb.shape[1], f.rgb.shape[0])
+    assert on.surface is not None and off.surface is None
+    realtime = SLAM(SLAMConfig(mapping_thread=True, **base), f.K, f.rgb.shape[1], f.rgb.shape[0])
+    asked = SLAM(SLAMConfig(mapping_thread=True, surface_realtime=True, **base), f.K,
+                 f.rgb.shape[1], f.rgb.shape[0])
+    assert realtime.surface is None and asked.surface is not None
+    realtime.finish(train=False)
+    asked.finish(train=False)
+    for i in range(3):
+        on.step(seq[i].rgb, seq[i].depth)
+    assert on.surface.memory_bytes > 0
+    assert on.trajectory_events()["surface_memory_mb"] > 0
+    assert "surface_memory_mb" not in off.trajectory_events()
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"surface_voxel": -0.01}, "surface_voxel"),
+    ({"surface_voxel": 0.05, "surface_truncation": 0.01}, "truncation"),
+])
+def test_a_bad_surface_option_names_itself(small_synthetic, options, message):
+    f = open_dataset(small_synthetic)[0]
+    with pytest.raises(ValueError, match=message):
+        SLAM(SLAMConfig(features=False, **options), f.K, f.rgb.shape[1], f.rgb.shape[0])
+
+
+def test_the_volume_refuses_bad_input():
+    tsdf = _core.TsdfCore(0.01, 0.04, 64.0, 0.1, 10.0)
+    K = np.array([[50.0, 0, 15.5], [0, 50.0, 11.5], [0, 0, 1]])
+    with pytest.raises(ValueError, match="depth"):
+        tsdf.integrate(np.ones((24, 32), np.float64), K, np.eye(4))
+    with pytest.raises(ValueError, match="pose"):
+        tsdf.integrate(np.ones((24, 32), np.float32), K, np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="near"):
+        tsdf.raycast(K, 32, 24, np.eye(4), np.ones((24, 31), np.float32))
+    with pytest.raises(ValueError, match="voxel"):
+        _core.TsdfCore(0.0, 0.04, 64.0, 0.1, 10.0)
