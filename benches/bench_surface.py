@@ -1,6 +1,6 @@
 """The fused surface's cost per frame (legslam.slam.surface): a SLAM run fuses each tracked
-frame at the tracking size and ray-casts the surface from its pose, the rays starting near the
-frame's depth. Fuses the frames of an RGB-D sequence at their ground-truth poses and times, per
+frame at the tracking size and ray-casts the surface from its pose, near the frame's depth (the
+engine's `raycast_near`). Fuses the frames of an RGB-D sequence at their ground-truth poses and times, per
 frame, the fusion, the ray-cast begun near the frame's depth (what SLAM runs) and the full
 ray-cast from the camera (the baseline, in the same process, alternating); medians and their
 ratio, and the volume's memory at the end.

@@ -267,6 +267,9 @@ fn a_march_begun_near_the_measured_depth_finds_the_same_surface() {
             _ => *v + (0.01 * rng.normal()) as f32,
         };
     }
+    let ok = near.iter().filter(|&&d| d > 0.0);
+    let lo = ok.clone().fold(f32::INFINITY, |a, &b| a.min(b));
+    let hi = ok.fold(0.0f32, |a, &b| a.max(b));
     let mut from_near = vec![0.0; W * H];
     tsdf.raycast_near(&k, &p, &near, &mut from_near).unwrap();
     // Where the march skips ahead it may step over a sliver of noise that a march begun
@@ -275,8 +278,17 @@ fn a_march_begun_near_the_measured_depth_finds_the_same_surface() {
     for i in 0..W * H {
         let (a, b) = (full[i], from_near[i]);
         match i % 7 {
-            // No measurement: the whole ray is marched.
-            0 => assert_eq!(a.to_bits(), b.to_bits(), "pixel {i}"),
+            // No measurement: the ray covers the measured depths only.
+            0 => {
+                assert!(
+                    b == 0.0 || (b >= lo - 0.16 && b <= hi + 0.16),
+                    "pixel {i}: {b}"
+                );
+                if a > lo - 0.1 && a < hi + 0.1 {
+                    compared += 1;
+                    agree += ((a - b).abs() < 0.005) as usize;
+                }
+            }
             // Begun where the wall's band is far behind: nothing in front of where it began.
             1 => assert!(b == 0.0 || b >= 0.3 - 2.0 * 0.08, "pixel {i}: {b}"),
             _ if a > 0.0 && (a - near[i]).abs() < 0.08 => {

@@ -345,8 +345,8 @@ impl PyTsdf {
     }
 
     /// The fused surface's depth (float32 height x width, 0 where none) through `k` from
-    /// `pose` (c2w); with `near` (float32 height x width), each ray where it has depth d
-    /// starts at d - 2 truncation.
+    /// `pose` (c2w); with `near` (float32 height x width), only where it has depth d, each ray
+    /// starting at d - 2 truncation.
     #[pyo3(signature = (k, width, height, pose_c2w, near=None))]
     fn raycast<'py>(
         &self,

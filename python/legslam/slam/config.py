@@ -269,12 +269,12 @@ class SLAMConfig:
     #: Tracked frames' depth is fused into a signed distance volume of voxels this wide (m; 0:
     #: off), and a frame is tracked against the last frame's colour with the fused surface's
     #: depth (legslam.slam.surface), with this truncation distance (m). Synchronous, on against
-    #: off (2026-11-28, one hour): 7-Scenes ATE 2.90 against 3.81 cm, 24.94 against 25.21 dB
-    #: every 5th frame, 3.73 against 4.39 fps; a 400-frame Replica render with Kinect-like
-    #: depth noise 0.48 against 0.54 cm, 35.64 against 35.02 dB, 3.25 against 4.31 fps; the
-    #: same render exact 0.47 against 0.46 cm, 35.72 against 35.90 dB, 3.00 against 3.94 fps.
-    #: With `mapping_thread` only with `surface_realtime`: its ~60 ms a frame would run on the
-    #: tracking thread, and real time has not been measured with it.
+    #: off (2026-11-28): 7-Scenes ATE 3.10 against 3.81 cm, 24.96 against 25.21 dB every 5th
+    #: frame, at 4.86 against 5.34 fps (the same hour); a 400-frame Replica render with
+    #: Kinect-like depth noise 0.48 against 0.54 cm, 35.62 against 35.02 dB; the same render
+    #: exact 0.47 against 0.46 cm, 35.72 against 35.90 dB (README: *Tracking against the fused
+    #: surface*). With `mapping_thread` only with `surface_realtime`: its ~35 ms a frame would
+    #: run on the tracking thread, and real time has not been measured with it.
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
     surface_realtime: bool = False

@@ -4,9 +4,10 @@ fused surface's depth seen from the last frame's pose (frame-to-model, as Kinect
 
 The last frame's own depth carries its noise and its error into the next alignment, so frame
 after frame the errors add up; the fused surface averages many frames and holds what was seen
-before, so a camera that comes back aligns with it. Each ray starts near the frame's own depth
-(two truncation distances in front of it); where the volume has no surface there, the frame's
-own depth stays.
+before, so a camera that comes back aligns with it. A ray through a pixel the frame measured
+starts two truncation distances in front of that depth; one through a hole covers only the
+depths the frame measured (the engine's `raycast_near`). Where the volume has no surface, the
+frame's own depth stays.
 
 A pose-graph correction moves keyframes and frames; the volume stays where it was fused, and
 poses reach it through the correction of the newest keyframe (`correct`), so around the

@@ -366,20 +366,37 @@ impl Tsdf {
     /// where any of the eight voxels is unobserved.
     fn trilinear(&self, g: Vec3, cache: &mut (Key, Option<u32>)) -> Option<f32> {
         let a = g - 0.5;
-        let base = Vec3::new(floor(a.x) as f32, floor(a.y) as f32, floor(a.z) as f32);
-        let f = a - base;
+        let v = [floor(a.x), floor(a.y), floor(a.z)];
+        let f = a - Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32);
+        // The corners lie in one block, or in two to eight where they straddle boundaries:
+        // each block is looked up once (corners alternate between blocks).
+        let mut seen = [*cache; 9];
+        let mut n_seen = 1;
         let mut acc = 0.0;
         for c in 0..8 {
-            let o = Vec3::new((c & 1) as f32, ((c >> 1) & 1) as f32, (c >> 2) as f32);
-            let (s, w) = self.voxel_at(base + o + 0.5, cache)?;
+            let o = [c & 1, (c >> 1) & 1, c >> 2];
+            let p = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
+            let kb = key(p.map(|x| x >> 3));
+            let slot = match seen[..n_seen].iter().find(|s| s.0 == kb) {
+                Some(s) => s.1,
+                None => {
+                    let s = (kb, self.index.get(&kb).copied());
+                    seen[n_seen] = s;
+                    n_seen += 1;
+                    s.1
+                }
+            };
+            let j = (p[0] & 7) as usize + SIDE * ((p[1] & 7) as usize + SIDE * (p[2] & 7) as usize);
+            let [s, w] = self.blocks[slot? as usize].0[j];
             if w <= 0.0 {
                 return None;
             }
-            let wx = if c & 1 == 1 { f.x } else { 1.0 - f.x };
-            let wy = if (c >> 1) & 1 == 1 { f.y } else { 1.0 - f.y };
-            let wz = if c >> 2 == 1 { f.z } else { 1.0 - f.z };
+            let wx = if o[0] == 1 { f.x } else { 1.0 - f.x };
+            let wy = if o[1] == 1 { f.y } else { 1.0 - f.y };
+            let wz = if o[2] == 1 { f.z } else { 1.0 - f.z };
             acc += wx * wy * wz * s;
         }
+        *cache = seen[n_seen - 1];
         Some(acc)
     }
 
@@ -390,9 +407,11 @@ impl Tsdf {
     }
 
     /// As [`Tsdf::raycast`], but each ray through a pixel where `near` (a depth image the size
-    /// of `k`) has depth d starts at d - 2 truncation: the surface found near a measurement,
-    /// without marching through the space in front of it. Where the fused surface lies farther
-    /// in front of d, that ray finds none.
+    /// of `k`) has depth d starts at d - 2 truncation: the surface near what a frame measured,
+    /// without marching through the space in front of it (where the fused surface lies farther
+    /// in front of d, that ray finds none). The rays through its holes march only over the
+    /// depths it measured, 2 truncation either side: most of them find no surface, and
+    /// marched to `max_depth` they cost most of a full ray-cast.
     pub fn raycast_near(
         &self,
         k: &Intrinsics,
@@ -428,13 +447,23 @@ impl Tsdf {
             ));
         }
         let two_trunc = 2.0 * self.cfg.truncation as f32;
+        // The depths `near` measured, widened by 2 truncation (none when it has none).
+        let measured = near.and_then(|d| {
+            let ok = d.iter().copied().filter(|&d| depth_ok(&self.cfg, d));
+            let (lo, hi) = ok.fold((f32::INFINITY, 0.0f32), |(lo, hi), d| {
+                (lo.min(d), hi.max(d))
+            });
+            (lo <= hi).then_some((lo - two_trunc, hi + two_trunc))
+        });
         out.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
             for (u, o) in row.iter_mut().enumerate() {
-                let from = near
-                    .map(|d| d[v * w + u])
-                    .filter(|&d| depth_ok(&self.cfg, d))
-                    .map_or(0.0, |d| d - two_trunc);
-                *o = self.cast(&view, u, v, from);
+                *o = match near.map(|d| d[v * w + u]) {
+                    None => self.cast(&view, u, v, (0.0, f32::INFINITY)),
+                    Some(d) if depth_ok(&self.cfg, d) => {
+                        self.cast(&view, u, v, (d - two_trunc, f32::INFINITY))
+                    }
+                    Some(_) => measured.map_or(0.0, |range| self.cast(&view, u, v, range)),
+                };
             }
         });
         Ok(())
@@ -445,8 +474,8 @@ impl Tsdf {
     /// free inside blocks; at the first crossing from in front of a surface to behind it, back
     /// over every sample since the last one in front, so that what is found is what a march
     /// over every sample finds. The crossing is interpolated between the trilinear distances
-    /// at its two samples. The march begins at the first sample at or beyond depth `from`.
-    fn cast(&self, view: &View, u: usize, v: usize, from: f32) -> f32 {
+    /// at its two samples. The march covers the samples at depths within `(from, to)`.
+    fn cast(&self, view: &View, u: usize, v: usize, (from, to): (f32, f32)) -> f32 {
         let inv_voxel = (1.0 / self.cfg.voxel) as f32;
         let dir = view.ray(u, v);
         // Per unit of t, in voxels along the ray.
@@ -455,7 +484,7 @@ impl Tsdf {
         let step = self.cfg.voxel as f32 / dir.length();
         let trunc_voxels = (self.cfg.truncation / self.cfg.voxel) as f32;
         let (t_min, t_max) = (self.cfg.min_depth as f32, self.cfg.max_depth as f32);
-        let last = ((t_max - t_min) / step).floor() as usize;
+        let last = ((t_max.min(to) - t_min) / step).floor() as usize;
         let mut cache = (Key::MAX, None);
         // The last sample in front of a surface: (n, normalised distance).
         let mut prev: Option<(usize, f32)> = None;
