@@ -299,7 +299,7 @@ impl PyOdometry {
     }
 }
 
-/// The fused surface volume (`legslam_core::track::Tsdf`); see `legslam.tracking.Surface`.
+/// The fused surface volume (`legslam_core::track::Tsdf`); see `legslam.slam.surface`.
 #[pyclass(module = "legslam._core", name = "TsdfCore")]
 struct PyTsdf {
     inner: Tsdf,
@@ -345,8 +345,8 @@ impl PyTsdf {
     }
 
     /// The fused surface's depth (float32 height x width, 0 where none) through `k` from
-    /// `pose` (c2w); with `near` (float32 height x width), only where it has depth d, each ray
-    /// starting at d - 2 truncation.
+    /// `pose` (c2w); with `near` (float32 height x width), each ray where it has depth d starts
+    /// at d - 2 truncation and those through its holes cover only the depths it measured.
     #[pyo3(signature = (k, width, height, pose_c2w, near=None))]
     fn raycast<'py>(
         &self,
