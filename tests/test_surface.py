@@ -89,6 +89,16 @@ def test_the_slam_option_turns_the_surface_on_and_off(small_synthetic):
     assert "surface_memory_mb" not in off.trajectory_events()
 
 
+def test_a_zero_minimum_depth_fuses_every_positive_depth(small_synthetic):
+    seq = open_dataset(small_synthetic)
+    f = seq[0]
+    slam = SLAM(SLAMConfig(features=False, relocalise=False, loop_closure=False,
+                           mapper={"depth_min": 0.0}), f.K, f.rgb.shape[1], f.rgb.shape[0])
+    for i in range(2):
+        slam.step(seq[i].rgb, seq[i].depth)
+    assert slam.surface.memory_bytes > 0
+
+
 @pytest.mark.parametrize("options, message", [
     ({"surface_voxel": -0.01}, "surface_voxel"),
     ({"surface_voxel": 0.05, "surface_truncation": 0.01}, "truncation"),

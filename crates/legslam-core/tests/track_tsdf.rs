@@ -360,11 +360,18 @@ fn bad_input_is_refused_and_missing_depth_is_ignored() {
     ] {
         assert!(Tsdf::new(bad).is_err(), "{bad:?} accepted");
     }
-    // NaN, infinite, zero and negative depth add nothing.
+    // NaN, infinite, zero and negative depth add nothing, with a zero minimum depth too.
     let junk = [f32::NAN, f32::INFINITY, 0.0, -1.0];
     let d: Vec<f32> = (0..W * H).map(|i| junk[i % 4]).collect();
     tsdf.integrate(&d, &k, &eye).unwrap();
     assert_eq!(tsdf.blocks(), 0);
+    let mut from_zero = Tsdf::new(TsdfConfig {
+        min_depth: 0.0,
+        ..config()
+    })
+    .unwrap();
+    from_zero.integrate(&d, &k, &eye).unwrap();
+    assert_eq!(from_zero.blocks(), 0);
     // Nothing fused: nothing seen.
     assert!(cast(&tsdf, &eye).iter().all(|v| *v == 0.0));
 }

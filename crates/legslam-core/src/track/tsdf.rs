@@ -33,7 +33,7 @@ pub struct TsdfConfig {
     pub truncation: f64,
     /// Cap on a voxel's accumulated weight (frames).
     pub max_weight: f32,
-    /// Depth range (m) that is fused and ray-cast.
+    /// Depth range (m) that is fused and ray-cast (a zero minimum: every positive depth).
     pub min_depth: f64,
     pub max_depth: f64,
 }
@@ -71,9 +71,10 @@ impl TsdfConfig {
                 self.max_weight
             ));
         }
-        if !(pos(self.min_depth) && self.max_depth.is_finite() && self.max_depth > self.min_depth) {
+        if !(self.min_depth >= 0.0 && self.max_depth.is_finite() && self.max_depth > self.min_depth)
+        {
             return Err(format!(
-                "need 0 < min_depth < max_depth, got {} and {}",
+                "need 0 <= min_depth < max_depth, got {} and {}",
                 self.min_depth, self.max_depth
             ));
         }
@@ -547,8 +548,9 @@ impl Tsdf {
     }
 }
 
+/// A measured depth within the range (0 is never one: it marks a pixel without depth).
 fn depth_ok(cfg: &TsdfConfig, d: f32) -> bool {
-    d.is_finite() && d as f64 >= cfg.min_depth && d as f64 <= cfg.max_depth
+    d > 0.0 && d as f64 >= cfg.min_depth && d as f64 <= cfg.max_depth
 }
 
 fn unkey(k: Key) -> [i32; 3] {
