@@ -235,13 +235,14 @@ fn the_block_skipping_march_finds_what_a_plain_march_finds() {
                 }
             }
         }
-        let miss = disagree
+        // One finding a surface where the other finds none: rarer still.
+        let hit_or_miss = disagree
             .iter()
             .filter(|d| (d.2 > 0.0) != (d.3 > 0.0))
             .count();
-        eprintln!("{} differ, {miss} in hit or miss", disagree.len());
+        assert!(hit_or_miss <= W * H / 200, "{hit_or_miss} hit or miss");
         assert!(
-            agree >= W * H * 98 / 100,
+            agree >= W * H * 99 / 100,
             "{} pixels differ, e.g. {:?}",
             disagree.len(),
             &disagree[..disagree.len().min(5)]
