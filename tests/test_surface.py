@@ -49,10 +49,10 @@ def test_fused_views_give_depth_nearer_the_truth_than_one_view(small_synthetic):
 def test_a_correction_leaves_the_surface_where_the_camera_sees_it(small_synthetic):
     frames = views(small_synthetic, noise=0.005)
     K = frames[0][2]
-    plain, corrected = (Surface(0.01, 0.04, (0.1, 10.0), K) for _ in range(2))
+    plain, corrected, moved = (Surface(0.01, 0.04, (0.1, 10.0), K) for _ in range(3))
     for view, _, _ in frames[:6]:
-        plain.fuse(view)
-        corrected.fuse(view)
+        for surface in (plain, corrected, moved):
+            surface.fuse(view)
     # The pose graph moves the world by C: poses after it are C @ pose.
     c, s = np.cos(0.1), np.sin(0.1)
     C = np.array([[c, -s, 0, 0.2], [s, c, 0, -0.1], [0, 0, 1, 0.05], [0, 0, 0, 1.0]])
@@ -62,9 +62,6 @@ def test_a_correction_leaves_the_surface_where_the_camera_sees_it(small_syntheti
     got = corrected.fuse(View(C @ view.pose, view.rgb, view.depth)).depth
     assert np.abs(got - expected).max() < 1e-3
     # Without the correction the moved pose would see another surface.
-    moved = Surface(0.01, 0.04, (0.1, 10.0), K)
-    for v, _, _ in frames[:6]:
-        moved.fuse(v)
     stale = moved.fuse(View(C @ view.pose, view.rgb, view.depth)).depth
     assert np.abs(stale - expected).max() > 0.01
 

@@ -223,7 +223,11 @@ impl Tsdf {
 
     /// Block and voxel of a world point, in voxel units `g = p / voxel`.
     fn locate(g: Vec3) -> ([i32; 3], usize) {
-        let v = [floor(g.x), floor(g.y), floor(g.z)];
+        Self::split([floor(g.x), floor(g.y), floor(g.z)])
+    }
+
+    /// Block of voxel `v` (integer voxel coordinates) and its index within the block.
+    fn split(v: [i32; 3]) -> ([i32; 3], usize) {
         // SIDE is 8: shifting floors towards minus infinity, the mask is the remainder.
         let b = v.map(|c| c >> 3);
         let l = v.map(|c| (c & 7) as usize);
@@ -376,8 +380,8 @@ impl Tsdf {
         let mut acc = 0.0;
         for c in 0..8 {
             let o = [c & 1, (c >> 1) & 1, c >> 2];
-            let p = [v[0] + o[0], v[1] + o[1], v[2] + o[2]];
-            let kb = key(p.map(|x| x >> 3));
+            let (b, j) = Self::split([v[0] + o[0], v[1] + o[1], v[2] + o[2]]);
+            let kb = key(b);
             let slot = match seen[..n_seen].iter().find(|s| s.0 == kb) {
                 Some(s) => s.1,
                 None => {
@@ -387,7 +391,6 @@ impl Tsdf {
                     s.1
                 }
             };
-            let j = (p[0] & 7) as usize + SIDE * ((p[1] & 7) as usize + SIDE * (p[2] & 7) as usize);
             let [s, w] = self.blocks[slot? as usize].0[j];
             if w <= 0.0 {
                 return None;
