@@ -5,7 +5,8 @@ frame, the fusion, the ray-cast begun near the frame's depth (what SLAM runs) an
 ray-cast from the camera (the baseline, in the same process, alternating); medians and their
 ratio, and the volume's memory at the end.
 
-    .venv/bin/python benches/bench_surface.py [SEQUENCE] [--frames 300] [--width 320]
+    .venv/bin/python benches/bench_surface.py [SEQUENCE] [--frames 300] [--width 320] [--voxel 0.01]
+        [--truncation 0.04]
 
 SEQUENCE: any folder `legslam run` reads (default: the 7-Scenes sequence in ../shared/data).
 """
@@ -32,6 +33,11 @@ def main(argv=None) -> int:
     ap.add_argument("path", nargs="?", default=str(DATA))
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--width", type=int, default=SLAMConfig.track_width, help="tracking width")
+    ap.add_argument("--voxel", type=float, default=SLAMConfig.surface_voxel, help="voxel edge (m)")
+    ap.add_argument("--hole-cell", type=int, default=1,
+                    help="pixels (a side) whose holes one ray serves")
+    ap.add_argument("--truncation", type=float, default=SLAMConfig.surface_truncation,
+                    help="truncation distance (m)")
     args = ap.parse_args(argv)
     if not Path(args.path).exists():
         print(f"no sequence at {args.path}", file=sys.stderr)
@@ -41,7 +47,7 @@ def main(argv=None) -> int:
     h, w = f0.depth.shape
     c = SLAMConfig()
     K, tw, th = _core.scaled_intrinsics(f0.K, w, h, min(1.0, args.width / w))
-    tsdf = _core.TsdfCore(c.surface_voxel, c.surface_truncation, MAX_WEIGHT, c.mapper.depth_min,
+    tsdf = _core.TsdfCore(args.voxel, args.truncation, MAX_WEIGHT, c.mapper.depth_min,
                           c.mapper.depth_max)
     fuse, near, full = [], [], []
     for i in range(len(seq)):
@@ -53,7 +59,7 @@ def main(argv=None) -> int:
         tsdf.integrate(depth, K, f.pose)
         t1 = time.perf_counter()
         # Alternating which ray-cast goes first, so that neither always meets a warm cache.
-        casts = [("near", lambda: tsdf.raycast(K, tw, th, f.pose, depth)),
+        casts = [("near", lambda: tsdf.raycast(K, tw, th, f.pose, depth, args.hole_cell)),
                  ("full", lambda: tsdf.raycast(K, tw, th, f.pose))]
         for name, cast in casts[:: 1 if i % 2 else -1]:
             a = time.perf_counter()
@@ -61,8 +67,8 @@ def main(argv=None) -> int:
             (near if name == "near" else full).append(time.perf_counter() - a)
         fuse.append(t1 - t0)
     ms = lambda v: 1e3 * float(np.median(v))  # noqa: E731
-    print(f"{len(fuse)} frames of {args.path} at {tw}x{th}, voxel {c.surface_voxel} m, "
-          f"truncation {c.surface_truncation} m")
+    print(f"{len(fuse)} frames of {args.path} at {tw}x{th}, voxel {args.voxel} m, "
+          f"truncation {args.truncation} m")
     print(f"  fuse                      {ms(fuse):7.1f} ms (median)")
     print(f"  ray-cast near the depth   {ms(near):7.1f} ms (x{ms(full) / ms(near):.2f} faster)")
     print(f"  ray-cast from the camera  {ms(full):7.1f} ms (baseline)")

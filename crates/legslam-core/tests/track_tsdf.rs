@@ -272,7 +272,7 @@ fn a_march_begun_near_the_measured_depth_finds_the_same_surface() {
     let lo = ok.clone().fold(f32::INFINITY, |a, &b| a.min(b));
     let hi = ok.fold(0.0f32, |a, &b| a.max(b));
     let mut from_near = vec![0.0; W * H];
-    tsdf.raycast_near(&k, &p, &near, &mut from_near).unwrap();
+    tsdf.raycast_near(&k, &p, &near, 1, &mut from_near).unwrap();
     // Where the march skips ahead it may step over a sliver of noise that a march begun
     // elsewhere lands in: compared as the plain march is, not bit for bit.
     let (mut compared, mut agree) = (0, 0);
@@ -302,9 +302,78 @@ fn a_march_begun_near_the_measured_depth_finds_the_same_surface() {
     assert!(compared > W * H / 2, "only {compared} pixels compared");
     assert!(agree >= compared * 98 / 100, "{agree} of {compared} agree");
     let err = tsdf
-        .raycast_near(&k, &p, &near[1..], &mut from_near)
+        .raycast_near(&k, &p, &near[1..], 1, &mut from_near)
         .unwrap_err();
     assert!(err.contains("near has"), "{err}");
+}
+
+#[test]
+fn holes_cast_in_cells_see_the_surface_through_the_cell_centres() {
+    let mut rng = Rng::new(23);
+    let scene = Scene::room(&mut rng, 6);
+    let poses: Vec<Pose> = (0..5).map(|_| pose(&mut rng, 1.0)).collect();
+    let tsdf = fused(&scene, &poses, 0.0, &mut rng);
+    let p = pose(&mut rng, 0.5);
+    let k = intrinsics();
+    // An empty border (a registered depth image's) and scattered holes.
+    let mut near = scene.depth(&k, &p);
+    for (i, d) in near.iter_mut().enumerate() {
+        let (u, v) = (i % W, i / W);
+        if u < 24 || v < 12 || i % 5 == 0 {
+            *d = 0.0;
+        }
+    }
+    let mut single = vec![0.0; W * H];
+    tsdf.raycast_near(&k, &p, &near, 1, &mut single).unwrap();
+    let cell = 4;
+    let mut cells = vec![0.0; W * H];
+    tsdf.raycast_near(&k, &p, &near, cell, &mut cells).unwrap();
+    // The surface through each cell's centre: a camera whose pixels are the cells.
+    let c = cell as f64;
+    let k_cells = Intrinsics::from_array(
+        [
+            k.fx / c,
+            k.fy / c,
+            (k.cx - 0.5 * (c - 1.0)) / c,
+            (k.cy - 0.5 * (c - 1.0)) / c,
+        ],
+        W / cell,
+        H / cell,
+    );
+    let truth_cells = scene.depth(&k_cells, &p);
+    let (mut cast, mut truth) = (Vec::new(), Vec::new());
+    for i in 0..W * H {
+        if near[i] > 0.0 {
+            assert_eq!(
+                cells[i].to_bits(),
+                single[i].to_bits(),
+                "measured pixel {i}"
+            );
+        } else {
+            let (u, v) = (i % W, i / W);
+            cast.push(cells[i]);
+            truth.push(truth_cells[(v / cell) * (W / cell) + u / cell]);
+        }
+    }
+    let (seen, missed, median, p95) = compare(&cast, &truth);
+    assert!(
+        seen > cast.len() / 2,
+        "{seen} of {} holes see a surface",
+        cast.len()
+    );
+    assert!(missed * 50 < seen, "{missed} missed");
+    assert!(median < 0.004 && p95 < 0.02, "median {median}, 95% {p95}");
+    // Cells cut by the image's edge; no cell at all is refused.
+    let mut odd = vec![0.0; W * H];
+    tsdf.raycast_near(&k, &p, &near, 7, &mut odd).unwrap();
+    assert!(near
+        .iter()
+        .zip(&odd)
+        .zip(&single)
+        .all(|((&n, a), b)| n == 0.0 || a == b));
+    assert!(odd.iter().filter(|&&d| d > 0.0).count() > W * H / 2);
+    let err = tsdf.raycast_near(&k, &p, &near, 0, &mut odd).unwrap_err();
+    assert!(err.contains("hole_cell"), "{err}");
 }
 
 #[test]
@@ -352,6 +421,14 @@ fn bad_input_is_refused_and_missing_depth_is_ignored() {
         },
         TsdfConfig {
             max_weight: f32::NAN,
+            ..config()
+        },
+        TsdfConfig {
+            max_weight: 256.0,
+            ..config()
+        },
+        TsdfConfig {
+            max_weight: 2.5,
             ..config()
         },
         TsdfConfig {

@@ -346,8 +346,11 @@ impl PyTsdf {
 
     /// The fused surface's depth (float32 height x width, 0 where none) through `k` from
     /// `pose` (c2w); with `near` (float32 height x width), each ray where it has depth d starts
-    /// at d - 2 truncation and those through its holes cover only the depths it measured.
-    #[pyo3(signature = (k, width, height, pose_c2w, near=None))]
+    /// at d - 2 truncation and those through its holes cover only the depths it measured,
+    /// one ray through the centre of each `hole_cell` x `hole_cell` cell of pixels giving its
+    /// holes' depth.
+    #[pyo3(signature = (k, width, height, pose_c2w, near=None, hole_cell=1))]
+    #[allow(clippy::too_many_arguments)] // Python's keyword arguments
     fn raycast<'py>(
         &self,
         py: Python<'py>,
@@ -356,6 +359,7 @@ impl PyTsdf {
         height: i64,
         pose_c2w: &Bound<'py, PyAny>,
         near: Option<&Bound<'py, PyAny>>,
+        hole_cell: usize,
     ) -> PyResult<Bound<'py, PyAny>> {
         let (w, h) = size(width, height)?;
         let kk = intrinsics(k, w, h)?;
@@ -368,7 +372,7 @@ impl PyTsdf {
         let out = engine_call(py, || {
             let mut out = vec![0.0f32; w * h];
             match near {
-                Some(d) => inner.raycast_near(&kk, &p, d, &mut out),
+                Some(d) => inner.raycast_near(&kk, &p, d, hole_cell, &mut out),
                 None => inner.raycast(&kk, &p, &mut out),
             }
             .map(|_| out)

@@ -65,9 +65,9 @@ impl TsdfConfig {
                 self.truncation, self.voxel
             ));
         }
-        if !(self.max_weight >= 1.0 && self.max_weight.is_finite()) {
+        if !(1.0..=255.0).contains(&self.max_weight) || self.max_weight.fract() != 0.0 {
             return Err(format!(
-                "max_weight must be at least 1, got {}",
+                "max_weight must be a whole number of frames from 1 to 255, got {}",
                 self.max_weight
             ));
         }
@@ -82,15 +82,36 @@ impl TsdfConfig {
     }
 }
 
-/// Per voxel (x fastest) its normalised signed distance and its weight, side by side: the
-/// ray-cast reads both from one cache line.
+/// Per voxel (x fastest) its normalised signed distance, quantised ([`UNSEEN`] until a frame
+/// observes it), and apart from the distances its weight (frames): the ray-cast reads the
+/// distances only, two bytes a voxel. Against f32 distance and weight side by side: a third
+/// of the memory, a ray-cast ~10% faster (its voxel reads miss the cache).
 #[derive(Clone)]
-struct Block([[f32; 2]; BLOCK_VOXELS]);
+struct Block {
+    sdf: [i16; BLOCK_VOXELS],
+    weight: [u8; BLOCK_VOXELS],
+}
 
 impl Block {
     fn empty() -> Self {
-        Block([[1.0, 0.0]; BLOCK_VOXELS])
+        Block {
+            sdf: [UNSEEN; BLOCK_VOXELS],
+            weight: [0; BLOCK_VOXELS],
+        }
     }
+}
+
+/// The distance of a voxel no frame has observed.
+const UNSEEN: i16 = i16::MIN;
+/// A normalised distance in [-1, 1] is stored times this (steps of 1/32767 truncation).
+const SDF_SCALE: f32 = i16::MAX as f32;
+
+fn quantise(f: f32) -> i16 {
+    (f * SDF_SCALE + 0.5f32.copysign(f)) as i16
+}
+
+fn dequantise(s: i16) -> f32 {
+    s as f32 * (1.0 / SDF_SCALE)
 }
 
 /// Block coordinates packed 21 bits each (blocks of 8 cm reach +-84 km).
@@ -185,12 +206,8 @@ impl View {
 
     /// World direction of pixel (u, v)'s ray, scaled so that its camera z is 1: a point at
     /// `centre + t * dir` has depth `t`.
-    fn ray(&self, u: usize, v: usize) -> Vec3 {
-        let d = Vec3::new(
-            (u as f32 - self.cx) / self.fx,
-            (v as f32 - self.cy) / self.fy,
-            1.0,
-        );
+    fn ray(&self, u: f32, v: f32) -> Vec3 {
+        let d = Vec3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0);
         self.r_wc * d
     }
 }
@@ -260,7 +277,7 @@ impl Tsdf {
                     if !depth_ok(&self.cfg, d) {
                         continue;
                     }
-                    let dir = view.ray(u, v);
+                    let dir = view.ray(u as f32, v as f32);
                     for s in 0..=samples {
                         let t = (d - trunc + s as f32 * (2.0 * trunc / samples as f32)).max(0.0);
                         let (b, _) = Self::locate((view.centre + t * dir) * inv_voxel);
@@ -290,7 +307,8 @@ impl Tsdf {
             }
         }
         let voxel = self.cfg.voxel as f32;
-        let (max_w, cfg) = (self.cfg.max_weight, self.cfg);
+        let (max_w, cfg) = (self.cfg.max_weight as u8, self.cfg);
+        let inv_trunc = 1.0 / trunc;
         self.blocks
             .par_iter_mut()
             .zip(self.coords.par_iter())
@@ -304,33 +322,45 @@ impl Tsdf {
                 // each world axis.
                 let c0 = view.r_cw * ((origin + 0.5) * voxel) + view.t_cw;
                 let step = view.r_cw * voxel;
-                for (j, [sdf, wt]) in block.0.iter_mut().enumerate() {
-                    let (x, y, z) = (j % SIDE, (j / SIDE) % SIDE, j / (SIDE * SIDE));
-                    let c = c0
-                        + step.x_axis * x as f32
-                        + step.y_axis * y as f32
-                        + step.z_axis * z as f32;
-                    if c.z <= 0.0 || c.z.is_nan() {
-                        continue;
+                let (wf, hf) = (w as f32, h as f32);
+                // A row of voxels along x at a time: their pixels first, in a loop without
+                // branches, then the updates (this and the compact voxels together took 7-Scenes'
+                // fusion from 10.2 to 7.2 ms a frame, from one loop doing both per voxel).
+                for row in 0..SIDE * SIDE {
+                    let c_row =
+                        c0 + step.y_axis * (row % SIDE) as f32 + step.z_axis * (row / SIDE) as f32;
+                    let mut pixel = [usize::MAX; SIDE];
+                    let mut cz = [0.0f32; SIDE];
+                    for x in 0..SIDE {
+                        let c = c_row + step.x_axis * x as f32;
+                        let inv_z = 1.0 / c.z;
+                        // The nearest pixel (libm's roundf is a call per voxel).
+                        let u = view.fx * c.x * inv_z + view.cx + 0.5;
+                        let v = view.fy * c.y * inv_z + view.cy + 0.5;
+                        let inside = c.z > 0.0 && u >= 0.0 && v >= 0.0 && u < wf && v < hf;
+                        pixel[x] = if inside {
+                            v as usize * w + u as usize
+                        } else {
+                            usize::MAX
+                        };
+                        cz[x] = c.z;
                     }
-                    // The nearest pixel (libm's roundf is a call per voxel).
-                    let inv_z = 1.0 / c.z;
-                    let u = view.fx * c.x * inv_z + view.cx + 0.5;
-                    let v = view.fy * c.y * inv_z + view.cy + 0.5;
-                    if !(u >= 0.0 && v >= 0.0 && u < w as f32 && v < h as f32) {
-                        continue;
+                    let j0 = row * SIDE;
+                    for x in 0..SIDE {
+                        let Some(&d) = depth.get(pixel[x]) else {
+                            continue;
+                        };
+                        let dist = d - cz[x];
+                        if !depth_ok(&cfg, d) || dist < -trunc {
+                            continue;
+                        }
+                        let f = (dist * inv_trunc).min(1.0);
+                        let (sdf, wt) = (&mut block.sdf[j0 + x], &mut block.weight[j0 + x]);
+                        let old = if *wt == 0 { 0.0 } else { dequantise(*sdf) };
+                        let n = *wt as f32;
+                        *sdf = quantise((old * n + f) / (n + 1.0));
+                        *wt = wt.saturating_add(1).min(max_w);
                     }
-                    let d = depth[v as usize * w + u as usize];
-                    if !depth_ok(&cfg, d) {
-                        continue;
-                    }
-                    let dist = d - c.z;
-                    if dist < -trunc {
-                        continue;
-                    }
-                    let f = (dist / trunc).min(1.0);
-                    *sdf = (*sdf * *wt + f) / (*wt + 1.0);
-                    *wt = (*wt + 1.0).min(max_w);
                 }
             });
         Ok(())
@@ -349,22 +379,20 @@ impl Tsdf {
     pub fn voxel_distance(&self, p: [f64; 3]) -> Option<f64> {
         let g = Vec3::new(p[0] as f32, p[1] as f32, p[2] as f32) / self.cfg.voxel as f32;
         match self.voxel_at(g, &mut (Key::MAX, None))? {
-            (_, w) if w <= 0.0 => None,
-            (f, _) => Some(f as f64 * self.cfg.truncation),
+            UNSEEN => None,
+            s => Some(dequantise(s) as f64 * self.cfg.truncation),
         }
     }
 
-    /// Normalised distance and weight of the voxel holding voxel-unit point `g`, if its block
-    /// is allocated. `cache` holds the last block looked up.
-    fn voxel_at(&self, g: Vec3, cache: &mut (Key, Option<u32>)) -> Option<(f32, f32)> {
+    /// Quantised distance of the voxel holding voxel-unit point `g` ([`UNSEEN`] if no frame
+    /// observed it), if its block is allocated. `cache` holds the last block looked up.
+    fn voxel_at(&self, g: Vec3, cache: &mut (Key, Option<u32>)) -> Option<i16> {
         let (b, j) = Self::locate(g);
         let kb = key(b);
         if cache.0 != kb {
             *cache = (kb, self.index.get(&kb).copied());
         }
-        let block = &self.blocks[cache.1? as usize];
-        let [f, w] = block.0[j];
-        Some((f, w))
+        Some(self.blocks[cache.1? as usize].sdf[j])
     }
 
     /// Trilinear distance at voxel-unit point `g` (voxel centres at half-integers); `None`
@@ -391,17 +419,17 @@ impl Tsdf {
                     s.1
                 }
             };
-            let [s, w] = self.blocks[slot? as usize].0[j];
-            if w <= 0.0 {
+            let s = self.blocks[slot? as usize].sdf[j];
+            if s == UNSEEN {
                 return None;
             }
             let wx = if o[0] == 1 { f.x } else { 1.0 - f.x };
             let wy = if o[1] == 1 { f.y } else { 1.0 - f.y };
             let wz = if o[2] == 1 { f.z } else { 1.0 - f.z };
-            acc += wx * wy * wz * s;
+            acc += wx * wy * wz * s as f32;
         }
         *cache = seen[n_seen - 1];
-        Some(acc)
+        Some(acc * (1.0 / SDF_SCALE))
     }
 
     /// Depth (m, along the optical axis) of the fused surface seen from `pose` through `k`,
@@ -415,12 +443,16 @@ impl Tsdf {
     /// without marching through the space in front of it (where the fused surface lies farther
     /// in front of d, that ray finds none). The rays through its holes march only over the
     /// depths it measured, 2 truncation either side: most of them find no surface, and
-    /// marched to `max_depth` they cost most of a full ray-cast.
+    /// marched to `max_depth` they cost most of a full ray-cast. The holes are cast in cells of
+    /// `hole_cell` x `hole_cell` pixels, one ray through each cell's centre giving the depth of
+    /// the cell's holes: a ray through a hole marches far, and the holes (a registered depth
+    /// image's empty border) come in patches.
     pub fn raycast_near(
         &self,
         k: &Intrinsics,
         pose: &Pose,
         near: &[f32],
+        hole_cell: usize,
         out: &mut [f32],
     ) -> Result<(), String> {
         if near.len() != k.width * k.height {
@@ -431,14 +463,17 @@ impl Tsdf {
                 k.height
             ));
         }
-        self.cast_all(k, pose, Some(near), out)
+        if hole_cell == 0 {
+            return Err("hole_cell must be at least 1".into());
+        }
+        self.cast_all(k, pose, Some((near, hole_cell)), out)
     }
 
     fn cast_all(
         &self,
         k: &Intrinsics,
         pose: &Pose,
-        near: Option<&[f32]>,
+        near: Option<(&[f32], usize)>,
         out: &mut [f32],
     ) -> Result<(), String> {
         let view = View::new(k, pose)?;
@@ -450,36 +485,68 @@ impl Tsdf {
                 k.height
             ));
         }
+        let Some((near, cell)) = near else {
+            out.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+                for (u, o) in row.iter_mut().enumerate() {
+                    *o = self.cast(&view, u as f32, v as f32, (0.0, f32::INFINITY));
+                }
+            });
+            return Ok(());
+        };
         let two_trunc = 2.0 * self.cfg.truncation as f32;
+        let ok = |d: f32| depth_ok(&self.cfg, d);
         // The depths `near` measured, widened by 2 truncation (none when it has none).
-        let measured = near.and_then(|d| {
-            let ok = d.iter().copied().filter(|&d| depth_ok(&self.cfg, d));
-            let (lo, hi) = ok.fold((f32::INFINITY, 0.0f32), |(lo, hi), d| {
+        let (lo, hi) = near
+            .iter()
+            .copied()
+            .filter(|&d| ok(d))
+            .fold((f32::INFINITY, 0.0f32), |(lo, hi), d| {
                 (lo.min(d), hi.max(d))
             });
-            (lo <= hi).then_some((lo - two_trunc, hi + two_trunc))
-        });
-        out.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
-            for (u, o) in row.iter_mut().enumerate() {
-                *o = match near.map(|d| d[v * w + u]) {
-                    None => self.cast(&view, u, v, (0.0, f32::INFINITY)),
-                    Some(d) if depth_ok(&self.cfg, d) => {
-                        self.cast(&view, u, v, (d - two_trunc, f32::INFINITY))
+        let measured = (lo <= hi).then_some((lo - two_trunc, hi + two_trunc));
+        // Rows in bands of `cell`, so that each thread has whole cells.
+        out.par_chunks_mut(w * cell)
+            .enumerate()
+            .for_each(|(band, rows)| {
+                let v0 = band * cell;
+                let n_rows = rows.len() / w;
+                for (i, o) in rows.iter_mut().enumerate() {
+                    let (u, v) = (i % w, v0 + i / w);
+                    let d = near[v * w + u];
+                    *o = if ok(d) {
+                        self.cast(&view, u as f32, v as f32, (d - two_trunc, f32::INFINITY))
+                    } else {
+                        0.0
+                    };
+                }
+                let Some(range) = measured else { return };
+                for u0 in (0..w).step_by(cell) {
+                    let n_cols = cell.min(w - u0);
+                    let holes = |i: usize| {
+                        let (u, v) = (u0 + i % n_cols, v0 + i / n_cols);
+                        (!ok(near[v * w + u])).then_some((v - v0) * w + u)
+                    };
+                    if (0..n_cols * n_rows).all(|i| holes(i).is_none()) {
+                        continue;
                     }
-                    Some(_) => measured.map_or(0.0, |range| self.cast(&view, u, v, range)),
-                };
-            }
-        });
+                    let centre = |first: usize, n: usize| first as f32 + 0.5 * (n - 1) as f32;
+                    let d = self.cast(&view, centre(u0, n_cols), centre(v0, n_rows), range);
+                    for j in (0..n_cols * n_rows).filter_map(holes) {
+                        rows[j] = d;
+                    }
+                }
+            });
         Ok(())
     }
 
-    /// March along pixel (u, v)'s ray over samples a voxel apart (`t = min_depth + n step`):
-    /// a block at a time through unallocated space and by the distance the volume guarantees
-    /// free inside blocks; at the first crossing from in front of a surface to behind it, back
-    /// over every sample since the last one in front, so that what is found is what a march
-    /// over every sample finds. The crossing is interpolated between the trilinear distances
-    /// at its two samples. The march covers the samples at depths within `(from, to)`.
-    fn cast(&self, view: &View, u: usize, v: usize, (from, to): (f32, f32)) -> f32 {
+    /// March along the ray through pixel coordinates (u, v) over samples a voxel apart
+    /// (`t = min_depth + n step`): a block at a time through unallocated space and by the
+    /// distance the volume guarantees free inside blocks; at the first crossing from in front
+    /// of a surface to behind it, back over every sample since the last one in front, so that
+    /// what is found is what a march over every sample finds. The crossing is interpolated
+    /// between the trilinear distances at its two samples. The march covers the samples at
+    /// depths within `(from, to)`.
+    fn cast(&self, view: &View, u: f32, v: f32, (from, to): (f32, f32)) -> f32 {
         let inv_voxel = (1.0 / self.cfg.voxel) as f32;
         let dir = view.ray(u, v);
         // Per unit of t, in voxels along the ray.
@@ -510,7 +577,8 @@ impl Tsdf {
                     n = (n + 1).max(-floor(-(exit - t_min) / step) as usize);
                     continue;
                 }
-                Some((f, w)) if w > 0.0 && f > 0.0 => {
+                Some(s) if s > 0 => {
+                    let f = dequantise(s);
                     prev = Some((n, f));
                     n += if fine {
                         1
@@ -519,7 +587,7 @@ impl Tsdf {
                     };
                     continue;
                 }
-                Some((f, w)) if w > 0.0 => match prev {
+                Some(s) if s != UNSEEN => match prev {
                     Some((np, _)) if !fine && np + 1 < n => {
                         // Skipped samples may hold the first crossing: walk them.
                         fine = true;
@@ -529,7 +597,7 @@ impl Tsdf {
                     Some((np, fp)) => {
                         let tp = t_min + np as f32 * step;
                         let fp = self.trilinear(g0 + tp * g_dir, &mut cache).unwrap_or(fp);
-                        let f = self.trilinear(g, &mut cache).unwrap_or(f);
+                        let f = self.trilinear(g, &mut cache).unwrap_or(dequantise(s));
                         let ts = if fp > f {
                             tp + (t - tp) * fp / (fp - f)
                         } else {
@@ -539,7 +607,7 @@ impl Tsdf {
                     }
                     // Behind a surface from the start, or seen from its back: no surface in
                     // front.
-                    None if f < 0.0 => return 0.0,
+                    None if s < 0 => return 0.0,
                     None => {}
                 },
                 // Unallocated (while walking back) or unobserved.
