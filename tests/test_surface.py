@@ -28,6 +28,13 @@ def views(scene, noise: float, seed: int = 0):
     return out
 
 
+def fused(surface: Surface, frame: int, view: View) -> View:
+    """`view` added to `surface` as frame `frame`: the reference it makes."""
+    surface.add(frame, view)
+    assert surface.reference[0] == frame
+    return surface.reference[1]
+
+
 def median_error(depth, truth):
     both = (depth > 0) & (truth > 0)
     assert both.mean() > 0.5
@@ -37,12 +44,12 @@ def median_error(depth, truth):
 def test_fused_views_give_depth_nearer_the_truth_than_one_view(small_synthetic):
     frames = views(small_synthetic, noise=0.01)
     surface = Surface(0.01, 0.04, (0.1, 10.0), frames[0][2])
-    for view, _, _ in frames[:-1]:
-        surface.fuse(view)
+    for i, (view, _, _) in enumerate(frames[:-1]):
+        surface.add(i, view)
     last, truth, _ = frames[-1]
-    fused = surface.fuse(last)
-    assert fused.pose is last.pose and fused.rgb is last.rgb
-    one, many = median_error(last.depth, truth), median_error(fused.depth, truth)
+    ref = fused(surface, len(frames) - 1, last)
+    assert ref.pose is last.pose and ref.rgb is last.rgb
+    one, many = median_error(last.depth, truth), median_error(ref.depth, truth)
     assert many < 0.5 * one, f"fused {many * 100:.2f} cm against one view's {one * 100:.2f} cm"
 
 
@@ -50,20 +57,40 @@ def test_a_correction_leaves_the_surface_where_the_camera_sees_it(small_syntheti
     frames = views(small_synthetic, noise=0.005)
     K = frames[0][2]
     plain, corrected, moved = (Surface(0.01, 0.04, (0.1, 10.0), K) for _ in range(3))
-    for view, _, _ in frames[:6]:
+    for i, (view, _, _) in enumerate(frames[:6]):
         for surface in (plain, corrected, moved):
-            surface.fuse(view)
+            surface.add(i, view)
     # The pose graph moves the world by C: poses after it are C @ pose.
     c, s = np.cos(0.1), np.sin(0.1)
     C = np.array([[c, -s, 0, 0.2], [s, c, 0, -0.1], [0, 0, 1, 0.05], [0, 0, 0, 1.0]])
-    corrected.correct(C)
+    poses = [C @ v.pose for v, _, _ in frames[:6]]
+    corrected.correct(C, poses)
+    # The reference (frame 5) follows its frame.
+    assert corrected.reference[0] == 5 and np.allclose(corrected.reference[1].pose, poses[5])
     view = frames[6][0]
-    expected = plain.fuse(view).depth
-    got = corrected.fuse(View(C @ view.pose, view.rgb, view.depth)).depth
+    expected = fused(plain, 6, view).depth
+    got = fused(corrected, 6, View(C @ view.pose, view.rgb, view.depth)).depth
     assert np.abs(got - expected).max() < 1e-3
     # Without the correction the moved pose would see another surface.
-    stale = moved.fuse(View(C @ view.pose, view.rgb, view.depth)).depth
+    stale = fused(moved, 6, View(C @ view.pose, view.rgb, view.depth)).depth
     assert np.abs(stale - expected).max() > 0.01
+
+
+def test_every_nth_frame_is_fused_and_the_frames_between_keep_its_reference(small_synthetic):
+    frames = views(small_synthetic, noise=0.005)
+    every, one = (Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=n) for n in (3, 1))
+    refs = []
+    for i, (view, _, _) in enumerate(frames[:7]):
+        every.add(i, view)
+        refs.append(every.reference[0])
+        if i % 3 == 0:
+            # A frame fused is what it is to a surface that fuses every frame it was given.
+            one.add(i, view)
+            assert np.array_equal(every.reference[1].depth, one.reference[1].depth)
+            assert every.reference[1].rgb is view.rgb
+    assert refs == [0, 0, 0, 3, 3, 3, 6]
+    with pytest.raises(ValueError, match="every"):
+        Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=0)
 
 
 def test_the_slam_option_turns_the_surface_on_and_off(small_synthetic):
@@ -99,6 +126,8 @@ def test_a_zero_minimum_depth_fuses_every_positive_depth(small_synthetic):
 @pytest.mark.parametrize("options, message", [
     ({"surface_voxel": -0.01}, "surface_voxel"),
     ({"surface_voxel": 0.05, "surface_truncation": 0.01}, "truncation"),
+    ({"surface_every": 0}, "surface_every"),
+    ({"realtime_surface_every": -1}, "realtime_surface_every"),
 ])
 def test_a_bad_surface_option_names_itself(small_synthetic, options, message):
     f = open_dataset(small_synthetic)[0]

@@ -1,6 +1,7 @@
 """The tracking policy's order of references (slam.track_policy): the map first every
 `map_every`-th frame (never with 0), the last tracked frame first otherwise, and each next
-reference only when the one before failed."""
+reference only when the one before failed; a render or view that serves several frames is
+prepared once."""
 
 from __future__ import annotations
 
@@ -105,3 +106,16 @@ def test_the_map_render_is_prepared_only_when_tried_and_once():
     assert tracker.prepared == ["frame", "map", "frame"]
     tracker.prepared.clear()
     assert track(policy).state == "ok" and tracker.prepared == ["frame", "map"]  # a new render
+
+
+def test_a_view_that_serves_several_frames_is_prepared_once():
+    tracker = RecordingTracker(works=("frame",))
+    policy = TrackingPolicy(tracker, np.eye(3), 0.8, 0.5, map_every=0)
+    surface_view = view("frame")  # the fused surface's reference, kept over several frames
+    for _ in range(3):
+        t = policy.track(np.zeros((4, 4, 3)), np.ones((4, 4), np.float32), np.eye(4),
+                         (np.eye(4), map_render()), (surface_view, view("keyframe")))
+        assert t.state == "ok"
+    assert tracker.prepared == ["frame"]
+    track(policy)  # another view (each frame's own): prepared anew
+    assert tracker.prepared == ["frame", "frame"]

@@ -279,6 +279,10 @@ class SLAMConfig:
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
     surface_realtime: bool = False
+    #: The surface fuses every this many tracked frames, synchronous and in real time (where
+    #: the fusion and ray-cast take the tracking thread's time and the mapping's cores).
+    surface_every: int = 1
+    realtime_surface_every: int = 3
     #: With `relocalise`: an alignment whose residual is more than this many times the recent
     #: median is refused as lost, for relocalisation to place (the camera jumped; see
     #: track_policy). On the built-in scene a jump tripled it.
@@ -475,6 +479,7 @@ _RANGES = {
     "reference_alpha": (0.0, 1.0), "min_reference_coverage": (0.0, 1.0), "map_reference_every": (0, _INF),
     "jump_residual_ratio": (1.0, _INF),
     "surface_voxel": (0.0, _INF), "surface_truncation": (1e-6, _INF),
+    "surface_every": (1, _INF), "realtime_surface_every": (1, _INF),
     "encoder_size": (28, _INF), "encoder_threads": (0, _INF),
     # Checked against the encoder's own dimension once it is loaded; the bound keeps an absurd
     # value from reaching the engine's allocations where the encoder does not say.

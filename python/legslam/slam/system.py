@@ -111,7 +111,8 @@ class SLAM:
         self._unplaced: dict[int, KeyframeView] = {}
         self._tracked_after: Optional[int] = None
         self._corrections: Optional[np.ndarray] = None  # of loops closed, not applied yet
-        self.surface = (Surface(c.surface_voxel, c.surface_truncation, self.depth_range, self.K_track)
+        self.surface = (Surface(c.surface_voxel, c.surface_truncation, self.depth_range, self.K_track,
+                                c.realtime_surface_every if c.mapping_thread else c.surface_every)
                         if c.surface_voxel > 0 and (c.surface_realtime or not c.mapping_thread) else None)
         self.keyframes = KeyframePolicy(c)
         self.trajectory = Trajectory()
@@ -233,7 +234,9 @@ class SLAM:
             poses = self.trajectory.poses
             return Tracked(poses[-1] if poses else np.eye(4), "init", 0.0)
         predicted = self.trajectory.predict(self._last_tracked.pose)
-        fallbacks = (self._last_tracked, self._last_keyframe)
+        last = (self._last_tracked if self.surface is None or self.surface.reference is None
+                else self.surface.reference[1])
+        fallbacks = (last, self._last_keyframe)
         return self.tracking.track(small.rgb, small.depth, predicted,
                                    self._mapping.reference(predicted), fallbacks)
 
@@ -268,7 +271,7 @@ class SLAM:
             self._features.collect()
         self._last_tracked = View(tracked.pose, small.rgb, small.depth)
         if self.surface is not None:
-            self._last_tracked = self.surface.fuse(self._last_tracked)
+            self.surface.add(i, self._last_tracked)
         return keyframe
 
     def _keyframe_made(self, kf_id: int, view: KeyframeView) -> None:
@@ -312,12 +315,12 @@ class SLAM:
             return
         corrections, self._corrections = self._corrections, None
         self._mapping.correct_keyframes(corrections)
-        if self.surface is not None:
-            self.surface.correct(corrections[-1])
         poses = np.stack(self.loops.poses)
         for k in self.places.places if self.places is not None else ():
             self.places.set_pose(k, poses[k])
         self.trajectory.follow(poses)
+        if self.surface is not None:
+            self.surface.correct(corrections[-1], self.trajectory.poses)
         last = self._last_keyframe
         self._last_keyframe = KeyframeView(poses[-1], last.rgb, last.depth, frame=last.frame)
         tracked = max(i for i, s in enumerate(self.trajectory.states) if s != "lost")

@@ -55,6 +55,9 @@ class TrackingPolicy:
         # (render, trusted pixels, prepared reference or None until needed) of the last render
         # seen: a mapping thread's render serves many frames and is prepared once.
         self._prepared: Optional[tuple] = None
+        # (view, prepared reference) of the last view prepared: the fused surface's reference
+        # serves several frames in real time.
+        self._view_prepared: Optional[tuple] = None
 
     def track(self, rgb: np.ndarray, depth: np.ndarray, predicted: np.ndarray,
               map_view: tuple, fallbacks: tuple[View, ...]) -> Tracked:
@@ -91,7 +94,10 @@ class TrackingPolicy:
             yield self._prepare(view)
 
     def _prepare(self, view: View) -> Reference:
-        return self.tracker.prepare_reference(view.rgb, view.depth, self.K, view.pose)
+        if self._view_prepared is None or self._view_prepared[0] is not view:
+            ref = self.tracker.prepare_reference(view.rgb, view.depth, self.K, view.pose)
+            self._view_prepared = (view, ref)
+        return self._view_prepared[1]
 
     def _trusted(self, render) -> Optional[np.ndarray]:
         """The pixels where the render is trusted (None until the mapping thread's first)."""
