@@ -1,12 +1,12 @@
-"""The fused surface's cost per frame (legslam.slam.surface): a SLAM run fuses each tracked
-frame at the tracking size and ray-casts the surface from its pose, near the frame's depth (the
-engine's `raycast_near`). Fuses the frames of an RGB-D sequence at their ground-truth poses and times, per
-frame, the fusion, the ray-cast begun near the frame's depth (what SLAM runs) and the full
-ray-cast from the camera (the baseline, in the same process, alternating); medians and their
-ratio, and the volume's memory at the end.
+"""The fused surface's cost per frame (legslam.slam.surface): a SLAM run fuses tracked frames
+at the tracking size and ray-casts the surface from their poses, near the frame's depth (the
+engine's `raycast_near`, the frame's holes in cells). Fuses the frames of an RGB-D sequence at
+their ground-truth poses and times, per frame, the fusion, the ray-cast begun near the frame's
+depth (what SLAM runs) and the full ray-cast from the camera (the baseline, in the same
+process, alternating); medians and their ratio, and the volume's memory at the end.
 
-    .venv/bin/python benches/bench_surface.py [SEQUENCE] [--frames 300] [--width 320] [--voxel 0.01]
-        [--truncation 0.04]
+    .venv/bin/python benches/bench_surface.py [SEQUENCE] [--frames 300] [--width 320]
+        [--voxel 0.01] [--truncation 0.04] [--hole-cell 2]
 
 SEQUENCE: any folder `legslam run` reads (default: the 7-Scenes sequence in ../shared/data).
 """
@@ -23,7 +23,7 @@ import numpy as np
 
 from legslam import _core, datasets
 from legslam.slam import SLAMConfig
-from legslam.slam.surface import MAX_WEIGHT
+from legslam.slam.surface import HOLE_CELL, MAX_WEIGHT
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_tsdf_fusion" / "data"
 
@@ -34,8 +34,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--width", type=int, default=SLAMConfig.track_width, help="tracking width")
     ap.add_argument("--voxel", type=float, default=SLAMConfig.surface_voxel, help="voxel edge (m)")
-    ap.add_argument("--hole-cell", type=int, default=1,
-                    help="pixels (a side) whose holes one ray serves")
+    ap.add_argument("--hole-cell", type=int, default=HOLE_CELL,
+                    help="pixels (a side) whose holes one ray serves (default: what SLAM uses)")
     ap.add_argument("--truncation", type=float, default=SLAMConfig.surface_truncation,
                     help="truncation distance (m)")
     args = ap.parse_args(argv)
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
         fuse.append(t1 - t0)
     ms = lambda v: 1e3 * float(np.median(v))  # noqa: E731
     print(f"{len(fuse)} frames of {args.path} at {tw}x{th}, voxel {args.voxel} m, "
-          f"truncation {args.truncation} m")
+          f"truncation {args.truncation} m, holes in cells of {args.hole_cell}")
     print(f"  fuse                      {ms(fuse):7.1f} ms (median)")
     print(f"  ray-cast near the depth   {ms(near):7.1f} ms (x{ms(full) / ms(near):.2f} faster)")
     print(f"  ray-cast from the camera  {ms(full):7.1f} ms (baseline)")

@@ -89,6 +89,11 @@ def test_every_nth_frame_is_fused_and_the_frames_between_keep_its_reference(smal
             assert np.array_equal(every.reference[1].depth, one.reference[1].depth)
             assert every.reference[1].rgb is view.rgb
     assert refs == [0, 0, 0, 3, 3, 3, 6]
+    # A relocalised frame at once, and the count starts again from it.
+    for i, (view, _, _) in enumerate(frames[7:12], start=7):
+        every.add(i, view, now=i == 8)
+        refs.append(every.reference[0])
+    assert refs[7:] == [6, 8, 8, 8, 11]
     with pytest.raises(ValueError, match="every"):
         Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=0)
 
@@ -101,11 +106,16 @@ def test_the_slam_option_turns_the_surface_on_and_off(small_synthetic):
     off = SLAM(SLAMConfig(surface_voxel=0, **base), f.K, f.rgb.shape[1], f.rgb.shape[0])
     assert on.surface is not None and off.surface is None
     realtime = SLAM(SLAMConfig(mapping_thread=True, **base), f.K, f.rgb.shape[1], f.rgb.shape[0])
-    asked = SLAM(SLAMConfig(mapping_thread=True, surface_realtime=True, **base), f.K,
-                 f.rgb.shape[1], f.rgb.shape[0])
-    assert realtime.surface is None and asked.surface is not None
-    realtime.finish(train=False)
-    asked.finish(train=False)
+    declined = SLAM(SLAMConfig(mapping_thread=True, surface_realtime=False, **base), f.K,
+                    f.rgb.shape[1], f.rgb.shape[0])
+    assert realtime.surface is not None and declined.surface is None
+    # Real time fuses every realtime_surface_every-th frame, synchronous runs surface_every-th.
+    cadence = dict(surface_every=2, realtime_surface_every=4, **base)
+    timed = SLAM(SLAMConfig(mapping_thread=True, **cadence), f.K, f.rgb.shape[1], f.rgb.shape[0])
+    synchronous = SLAM(SLAMConfig(**cadence), f.K, f.rgb.shape[1], f.rgb.shape[0])
+    assert (timed.surface.every, synchronous.surface.every) == (4, 2)
+    for slam in (realtime, declined, timed, synchronous):
+        slam.finish(train=False)
     for i in range(3):
         on.step(seq[i].rgb, seq[i].depth)
     assert on.surface.memory_bytes > 0

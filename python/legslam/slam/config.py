@@ -267,20 +267,24 @@ class SLAMConfig:
     #: render from 3.3 to 1.0 cm.)
     map_reference_every: int = 0
     #: Tracked frames' depth is fused into a signed distance volume of voxels this wide (m; 0:
-    #: off), and a frame is tracked against the last frame's colour with the fused surface's
-    #: depth (legslam.slam.surface), with this truncation distance (m). Synchronous, on against
-    #: off (2026-11-28): 7-Scenes ATE 3.10 against 3.81 cm, 24.96 against 25.21 dB every 5th
-    #: frame, at 4.86 against 5.34 fps (the same hour); a 400-frame Replica render with
-    #: Kinect-like depth noise 0.48 against 0.54 cm, 35.62 against 35.02 dB; the same render
-    #: exact 0.47 against 0.46 cm, 35.84 against 35.90 dB (README: *Tracking against the fused
-    #: surface*). With `mapping_thread` only with `surface_realtime`: it runs on the tracking
-    #: thread, and 7-Scenes flat out took 12.4 instead of 43.1 frames a second while frames came
-    #: in (ATE 3.29 against 4.28 cm, 25.18 against 24.58 dB).
+    #: off), and a frame is tracked against the last fused frame's colour with the fused
+    #: surface's depth (legslam.slam.surface), with this truncation distance (m). Synchronous,
+    #: on against off (2026-11-28): 7-Scenes ATE 2.93 against 3.81 cm, 24.89 against 25.21 dB
+    #: every 5th frame, 5.08 fps (the first version: 3.10 cm, 24.96 dB, at 4.86 against 5.34
+    #: fps in one hour); with the first version, a 400-frame Replica render with Kinect-like
+    #: depth noise 0.48 against 0.54 cm, 35.62 against 35.02 dB, the same render exact 0.47
+    #: against 0.46 cm, 35.84 against 35.90 dB (README: *Tracking against the fused surface*).
+    #: `surface_realtime`: in real time too, where every `realtime_surface_every`-th tracked
+    #: frame is fused (the fusion and ray-cast run on the tracking thread and take the
+    #: mapping's cores: fusing every frame, the first version kept up with 13.7 of a 30 Hz
+    #: camera's frames a second on 7-Scenes). Paced, every 3rd against off (2026-11-28, the
+    #: same hour): 7-Scenes ATE 3.62 against 4.28 cm, 24.55 against 24.85 dB; the Kinect-noise
+    #: render 0.49 against 0.54 cm (three runs each), 33.74 against 34.05 dB (means); the exact
+    #: render 0.46 against 0.45 cm, 34.33 against 34.07 dB. Every 5th: 4.03 cm, 24.61 dB; 0.47
+    #: cm, 34.05 dB.
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
-    surface_realtime: bool = False
-    #: The surface fuses every this many tracked frames, synchronous and in real time (where
-    #: the fusion and ray-cast take the tracking thread's time and the mapping's cores).
+    surface_realtime: bool = True
     surface_every: int = 1
     realtime_surface_every: int = 3
     #: With `relocalise`: an alignment whose residual is more than this many times the recent

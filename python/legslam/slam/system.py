@@ -271,7 +271,7 @@ class SLAM:
             self._features.collect()
         self._last_tracked = View(tracked.pose, small.rgb, small.depth)
         if self.surface is not None:
-            self.surface.add(i, self._last_tracked)
+            self.surface.add(i, self._last_tracked, now=tracked.state == "relocalised")
         return keyframe
 
     def _keyframe_made(self, kf_id: int, view: KeyframeView) -> None:
