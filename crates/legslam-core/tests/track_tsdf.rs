@@ -110,6 +110,15 @@ fn fused(scene: &Scene, poses: &[Pose], noise: f64, rng: &mut Rng) -> Tsdf {
     tsdf
 }
 
+/// A room with `spheres` spheres, fused from `views` random views (spread 1) with depth noise
+/// `noise` (m).
+fn fused_room(rng: &mut Rng, spheres: usize, views: usize, noise: f64) -> (Scene, Tsdf) {
+    let scene = Scene::room(rng, spheres);
+    let poses: Vec<Pose> = (0..views).map(|_| pose(rng, 1.0)).collect();
+    let tsdf = fused(&scene, &poses, noise, rng);
+    (scene, tsdf)
+}
+
 fn cast(tsdf: &Tsdf, p: &Pose) -> Vec<f32> {
     let mut out = vec![0.0; W * H];
     tsdf.raycast(&intrinsics(), p, &mut out).unwrap();
@@ -136,9 +145,7 @@ fn compare(cast: &[f32], truth: &[f32]) -> (usize, usize, f64, f64) {
 #[test]
 fn a_view_it_was_not_built_from_sees_the_true_surface() {
     let mut rng = Rng::new(3);
-    let scene = Scene::room(&mut rng, 4);
-    let poses: Vec<Pose> = (0..6).map(|_| pose(&mut rng, 1.0)).collect();
-    let tsdf = fused(&scene, &poses, 0.0, &mut rng);
+    let (scene, tsdf) = fused_room(&mut rng, 4, 6, 0.0);
     for _ in 0..3 {
         let p = pose(&mut rng, 0.5);
         let (n, missed, med, p95) = compare(&cast(&tsdf, &p), &scene.depth(&intrinsics(), &p));
@@ -217,9 +224,7 @@ fn plain_march(tsdf: &Tsdf, k: &Intrinsics, p: &Pose, u: usize, v: usize) -> f32
 fn the_block_skipping_march_finds_what_a_plain_march_finds() {
     let mut rng = Rng::new(11);
     for _ in 0..3 {
-        let scene = Scene::room(&mut rng, 6);
-        let poses: Vec<Pose> = (0..4).map(|_| pose(&mut rng, 1.0)).collect();
-        let tsdf = fused(&scene, &poses, 0.003, &mut rng);
+        let (_, tsdf) = fused_room(&mut rng, 6, 4, 0.003);
         let p = pose(&mut rng, 1.0);
         let fast = cast(&tsdf, &p);
         let k = intrinsics();
@@ -253,9 +258,7 @@ fn the_block_skipping_march_finds_what_a_plain_march_finds() {
 #[test]
 fn a_march_begun_near_the_measured_depth_finds_the_same_surface() {
     let mut rng = Rng::new(19);
-    let scene = Scene::room(&mut rng, 6);
-    let poses: Vec<Pose> = (0..5).map(|_| pose(&mut rng, 1.0)).collect();
-    let tsdf = fused(&scene, &poses, 0.004, &mut rng);
+    let (scene, tsdf) = fused_room(&mut rng, 6, 5, 0.004);
     let p = pose(&mut rng, 0.5);
     let k = intrinsics();
     let full = cast(&tsdf, &p);
@@ -310,9 +313,7 @@ fn a_march_begun_near_the_measured_depth_finds_the_same_surface() {
 #[test]
 fn holes_cast_in_cells_see_the_surface_through_the_cell_centres() {
     let mut rng = Rng::new(23);
-    let scene = Scene::room(&mut rng, 6);
-    let poses: Vec<Pose> = (0..5).map(|_| pose(&mut rng, 1.0)).collect();
-    let tsdf = fused(&scene, &poses, 0.0, &mut rng);
+    let (scene, tsdf) = fused_room(&mut rng, 6, 5, 0.0);
     let p = pose(&mut rng, 0.5);
     let k = intrinsics();
     // An empty border (a registered depth image's) and scattered holes.
