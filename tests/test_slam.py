@@ -66,7 +66,8 @@ def test_outputs_are_written(mapped):
     cfg, its = mapped["slam"].config, timings["mapping_iterations"]
     assert its["while_frames_came_in"] == cfg.map_iters_keyframe * mapped["metrics"]["keyframes"], its
     assert its["final"] == cfg.final_iters + round(cfg.final_iters_per_frame * 24), its
-    assert json.loads((out / "metrics.json").read_text())["gaussians"] > 1000
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["gaussians"] > 1000 and metrics["map_full_at_frame"] is None
     assert (out / "map.ply").stat().st_size > 1000
     assert any((out / "renders").glob("*_input_render.png"))
 
@@ -237,6 +238,28 @@ def test_frames_without_valid_depth_do_not_stall_the_map(scene):
     states = [slam.step(seq[i].rgb, seq[i].depth).state for i in range(2, 8)]
     assert states[0] == "init" and states[1:] == ["ok"] * 5, states
     assert slam.mapper.num_gaussians > 1000
+
+
+def test_a_full_map_is_said_once_with_the_frame_it_filled_at(scene, caplog):
+    seq = open_dataset(scene)
+
+    def twelve_frames(**mapper):
+        slam = SLAM(SLAMConfig(features=False, final_iters=0, mapper=mapper), seq[0].K, 160, 120)
+        caplog.clear()
+        for i in range(12):
+            slam.step(seq[i].rgb, seq[i].depth)
+        return slam, [r.message for r in caplog.records if "max_gaussians" in r.message]
+
+    roomy, said = twelve_frames()
+    assert roomy.map_full_at is None and said == []
+    # Room for the first keyframe's Gaussians and a few more: the map fills later.
+    probe = SLAM(SLAMConfig(features=False), seq[0].K, 160, 120)
+    probe.step(seq[0].rgb, seq[0].depth)
+    cap = probe.mapper.num_gaussians + 50
+    full, said = twelve_frames(max_gaussians=cap)
+    assert len(full.keyframe_frames) >= 2 and full.map_full_at is not None and full.map_full_at > 0
+    assert full.mapper.num_gaussians <= cap
+    assert len(said) == 1 and f"frame {full.map_full_at}:" in said[0] and f"{cap} Gaussians" in said[0]
 
 
 def test_final_iterations_report_progress_and_train_the_same_map_in_batches(scene, monkeypatch, capsys,

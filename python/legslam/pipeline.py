@@ -134,7 +134,8 @@ def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encode
                "lost_frames": int(sum(s == "lost" for s in slam.states)),
                "frames_without_depth": slam.frames_without_depth,
                "frames_depth_out_of_range": slam.frames_depth_out_of_range,
-               "gaussians": slam.mapper.num_gaussians, "fps": timings["fps"],
+               "gaussians": slam.mapper.num_gaussians, "map_full_at_frame": slam.map_full_at,
+               "fps": timings["fps"],
                **slam.trajectory_events()}
     if live:  # taken from the camera as they came; evaluated on the frames recorded
         metrics["dropped_frames"] = seq.dropped

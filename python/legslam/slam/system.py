@@ -85,6 +85,8 @@ class SLAM:
         #: Frames without any depth measurement, and frames whose depth lay mostly outside
         #: `depth_range` (dropped: see `_prepare`).
         self.frames_without_depth = self.frames_depth_out_of_range = 0
+        #: The frame at which the map first held `mapper.max_gaussians` (None: never).
+        self.map_full_at: Optional[int] = None
         s = min(1.0, c.track_width / self.width)
         self.K_track, *size = _core.scaled_intrinsics(self.K, self.width, self.height, s)
         self.track_size = tuple(size)
@@ -269,10 +271,23 @@ class SLAM:
                 self._features.submit(kf_id, rgb)
         if self._features is not None:
             self._features.collect()
+        self._check_map_full(i)
         self._last_tracked = View(tracked.pose, small.rgb, small.depth)
         if self.surface is not None:
             self.surface.add(i, self._last_tracked, now=tracked.state == "relocalised")
         return keyframe
+
+    def _check_map_full(self, i: int) -> None:
+        """Says once when the map reaches its cap: from then on, new keyframes seed Gaussians
+        only where pruning has freed room, so a camera walking on into new rooms leaves them
+        nearly empty."""
+        cap = self.config.mapper.max_gaussians
+        if self.map_full_at is None and self._mapping.num_gaussians >= cap:
+            self.map_full_at = i
+            log.warning("frame %d: the map holds its maximum of %d Gaussians (mapper option "
+                        "max_gaussians), so surfaces seen from now on get new Gaussians only where "
+                        "pruning frees room; for a larger scene raise it (each 100k Gaussians take "
+                        "about 200 MB and lengthen every mapping iteration)", i, cap)
 
     def _keyframe_made(self, kf_id: int, view: KeyframeView) -> None:
         """A new keyframe: a node of the pose graph with edges to the keyframes that see the same
