@@ -37,7 +37,7 @@ def test_single_gaussian_matches_closed_form():
     o = 1 / (1 + np.exp(-logit))
     ys, xs = np.mgrid[0:H, 0:W]
     a = o * np.exp(-0.5 * ((xs - 31.5) ** 2 + (ys - 23.5) ** 2) / var)
-    a = np.where(a >= 1 / 255, a, 0)
+    a = np.where(a >= 0.01, a, 0)  # the rasterizer's alpha cut-off
     np.testing.assert_allclose(out.alpha, a, atol=1e-5)
     np.testing.assert_allclose(out.depth, a * z, atol=1e-5)
     c0 = 0.28209479177387814

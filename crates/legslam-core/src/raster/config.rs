@@ -1,4 +1,5 @@
-//! The rasterizer's numerical constants, in one place (the values gsplat and 3DGS use).
+//! The rasterizer's numerical constants, in one place (the values gsplat and 3DGS use, but
+//! for the alpha cut-off).
 
 use crate::Real;
 
@@ -6,7 +7,9 @@ use crate::Real;
 /// cut-offs to make the rendered image a smooth function of the parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RasterConfig {
-    /// A Gaussian contributes to a pixel only where its alpha reaches this value.
+    /// A Gaussian contributes to a pixel only where its alpha reaches this value. 3DGS and
+    /// gsplat use 1/255; 1/100 leaves out the faintest rim of every Gaussian, which made
+    /// SLAM runs 10-19% faster with maps as good (README, "The engine's speed").
     pub alpha_min: Real,
     /// Alpha is capped here so that one Gaussian never makes a pixel fully opaque.
     pub alpha_max: Real,
@@ -26,7 +29,7 @@ pub struct RasterConfig {
 impl Default for RasterConfig {
     fn default() -> Self {
         RasterConfig {
-            alpha_min: 1.0 / 255.0,
+            alpha_min: 0.01,
             alpha_max: 0.99,
             transmittance_min: 1e-4,
             near: 0.01,
