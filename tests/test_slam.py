@@ -541,6 +541,58 @@ def test_a_failure_in_the_mapping_thread_reaches_the_tracker():
         t.stop()
 
 
+def test_the_mapping_thread_renders_a_reference_every_few_batches_unless_coverage_counts(monkeypatch):
+    from legslam.slam import mapping
+    from legslam.slam.mapping import REFERENCE_EVERY, ThreadedMapping
+
+    class Counting:
+        """A mapper that records after how many batches each reference was rendered."""
+        num_gaussians, num_keyframes = 0, 0
+
+        def __init__(self):
+            self.batches, self.rendered_after, self.corrected_after = 0, [], None
+
+        def add_keyframe(self, *args):
+            self.num_gaussians = self.num_keyframes = 1
+            return 0, 1
+
+        def correct_keyframes(self, corrections):
+            self.corrected_after = self.batches
+
+        def train(self, n, lr_scale=1.0):
+            self.batches += 1
+            time.sleep(0.002)
+
+        def render(self, *args):
+            self.rendered_after.append(self.batches)
+            return object()
+
+    def run(coverage_iters, batches=24, correct_at=None):
+        m = Counting()
+        t = ThreadedMapping(m, np.eye(3), (4, 4), coverage_iters=coverage_iters)
+        t.after_frame(np.eye(4), True)
+        t.add_keyframe(None, None, None, np.eye(4))
+        deadline = time.time() + 10
+        while m.batches < batches and time.time() < deadline:
+            if correct_at is not None and m.batches >= correct_at:
+                t.correct_keyframes(np.eye(4)[None])
+                correct_at = None
+            time.sleep(0.001)
+        t.stop()
+        return m
+
+    # The newest keyframe short of its iterations: the first batch, then every few.
+    m = run(coverage_iters=10 ** 9)
+    assert m.rendered_after == [1] + list(range(REFERENCE_EVERY, m.batches + 1, REFERENCE_EVERY))
+    # Once the tracker counts the map's coverage: after every batch.
+    m = run(coverage_iters=0)
+    assert m.rendered_after == list(range(1, m.batches + 1))
+    # A correction moves the map: the batch after it renders whatever the count.
+    monkeypatch.setattr(mapping, "REFERENCE_EVERY", 10 ** 9)
+    m = run(coverage_iters=10 ** 9, correct_at=5)
+    assert m.corrected_after >= 5 and m.rendered_after == [1, m.corrected_after + 1]
+
+
 def test_new_gaussians_are_seeded_on_a_grid_about_grow_width_wide():
     def grow_stride(width, **cfg):
         slam = SLAM(SLAMConfig(features=False, final_iters=0, **cfg), np.eye(3), width, width * 3 // 4)

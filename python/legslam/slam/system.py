@@ -122,7 +122,7 @@ class SLAM:
         self._last_keyframe: Optional[KeyframeView] = None
         self._last_tracked: Optional[View] = None
         self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch,
-                                         c.realtime_lr_scales())
+                                         c.realtime_lr_scales(), c.map_iters_keyframe)
                          if c.mapping_thread else self._inline_mapping())
         self._final_stats: list = []
         self._first_frame_at: Optional[float] = None
