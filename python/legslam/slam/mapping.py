@@ -61,8 +61,8 @@ class InlineMapping:
         """(pose, render at the tracking size) to track against: the map at `predicted`."""
         return predicted, self._mapper.render(predicted, self._K_track, *self._track_size)
 
-    def keeps_up(self, iterations: int) -> bool:
-        """Whether the newest keyframe has had `iterations`: always, inline."""
+    def keeps_up(self) -> bool:
+        """Whether the newest keyframe has had its iterations: always, inline."""
         return True
 
     @property
@@ -149,10 +149,10 @@ class ThreadedMapping:
         """Whether queued keyframes have not reached the map yet."""
         return self._applied < self._submitted
 
-    def keeps_up(self, iterations: int) -> bool:
-        """Whether every queued keyframe is in the map and the latest has had this many
-        iterations since."""
-        return not self.pending and self._iterations_since_keyframe >= iterations
+    def keeps_up(self) -> bool:
+        """Whether every queued keyframe is in the map and the latest has had
+        `coverage_iters` iterations since."""
+        return not self.pending and self._iterations_since_keyframe >= self._coverage_iters
 
     @property
     def empty(self) -> bool:
@@ -206,7 +206,7 @@ class ThreadedMapping:
                 batches += 1
                 pose, applied = self._reference_pose, self._corrections_applied
                 last = self._reference
-                due = (last is None or last[2] != applied or self.keeps_up(self._coverage_iters)
+                due = (last is None or last[2] != applied or self.keeps_up()
                        or batches % REFERENCE_EVERY == 0)
                 if pose is not None and due:
                     t0 = time.perf_counter()

@@ -260,7 +260,7 @@ class SLAM:
             self.relocaliser.tracked()
         keyframe = self.keyframes.wants(
             i, tracked.pose, tracked.coverage, self._last_keyframe, self._mapping.empty,
-            coverage_counts=self._mapping.keeps_up(self.config.map_iters_keyframe))
+            coverage_counts=self._mapping.keeps_up())
         if keyframe:
             kf_id = self._mapping.add_keyframe(rgb.astype(np.float32) / 255.0, depth, self.K,
                                                tracked.pose)
