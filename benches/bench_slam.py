@@ -132,8 +132,9 @@ def main() -> int:
     after = ", ".join(f"{r['frame']}: {r['lost_frames']}" for r in relocs)
     print(f"| relocalisations (frame: lost frames before) | {len(relocs)} ({after}) |")
     loop_ms = [e["ms"] for e in loops]
-    print(f"| loops closed / rejected, ms per closure (median) | {len(loops)} / "
-          f"{len(m.get('rejected_loops', []))}, {np.median(loop_ms) if loop_ms else 0:.0f} ms |")
+    held = sum(e["dropped_at_frame"] is None for e in loops)
+    print(f"| loops closed (holding at the end) / rejected, ms per closure (median) | {len(loops)} "
+          f"({held}) / {len(m.get('rejected_loops', []))}, {np.median(loop_ms) if loop_ms else 0:.0f} ms |")
     if "covisibility_edges" in m:
         print(f"| covisibility edges kept / rejected | {m['covisibility_edges']} / "
               f"{len(m['rejected_covisibility_edges'])} |")

@@ -346,6 +346,53 @@ def test_a_false_loop_is_rejected_and_logged(room, caplog):
     assert all(e.kind == "odometry" for e in loops.graph.edges)
 
 
+def test_a_loop_the_later_edges_contradict_is_marked_dropped(caplog):
+    """A loop closed at first (8 cm off the odometry of 90 cm) that the next keyframe's
+    covisibility edges contradict is dropped by that optimisation: metrics.json marks it with the
+    frame it was dropped at, and it no longer counts among the loops that hold."""
+    from legslam.slam.covisibility import Covisible
+    from legslam.slam.loop_closure import LoopClosure
+    from legslam.slam.pose_graph import relative
+    from legslam.slam.place_recognition import Recognised
+
+    loops = straight_chain(LoopClosure(SLAMConfig(loop_min_gap=3), places=None), 10)
+    chain = [p.copy() for p in loops.poses]
+    off = chain[9].copy()
+    off[1, 3] += 0.08
+    found = Recognised(pose=off, keyframe=0, similarity=0.95, inliers=40, matches=60,
+                       inlier_ratio=0.8, overlap=0.9)
+    assert loops.close(9, found, ms=0.0) is not None
+    assert [e.dropped_at_frame for e in loops.events] == [None] and loops.held == loops.events
+    # Keyframe 10 (frame 100), a step on from keyframe 9, sees keyframes 0-2 where the chain put them.
+    step = relative(chain[8], chain[9])
+    loops.add_keyframe(frame=100, pose=loops.poses[9] @ step, after=9)
+    ten = chain[9] @ step
+    with caplog.at_level("WARNING", logger="legslam"):
+        loops.add_covisible([Covisible(new=10, old=k, measurement=relative(ten, chain[k]),
+                                       inlier_ratio=0.9, overlap=0.5) for k in (0, 1, 2)])
+    assert "dropped at frame 100" in caplog.text
+    record = loops.events[0].as_dict()
+    assert record["dropped_at_frame"] == 100 and record["frame"] == 90
+    assert loops.held == []
+    assert loops.rejected == [{"frame": 90, "keyframes": [0, 9], "chi2": loops.rejected[0]["chi2"],
+                               "dropped_at_frame": 100}]
+    # Without the loop the keyframes go back where the odometry and the new edges put them.
+    assert np.allclose(np.stack(loops.poses)[:10, :3, 3], np.stack(chain)[:, :3, 3], atol=5e-3)
+
+
+def test_the_progress_line_counts_the_loops_that_hold():
+    from types import SimpleNamespace
+
+    from legslam.pipeline import _events
+
+    closed = [{"frame": 90, "dropped_at_frame": 100}, {"frame": 120, "dropped_at_frame": None}]
+    slam = SimpleNamespace(trajectory_events=lambda: {"relocalisations": [{}],
+                                                      "loop_closures": closed})
+    assert _events(slam) == "  reloc 1  loops 1"
+    closed.pop()
+    assert _events(slam) == "  reloc 1"
+
+
 def test_without_the_encoder_no_features_runs_without_place_recognition(scene, tmp_path, monkeypatch,
                                                                        caplog):
     monkeypatch.setenv("LEGSLAM_CACHE", str(tmp_path))  # no encoder cached there

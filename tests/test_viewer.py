@@ -128,7 +128,7 @@ def test_no_display_or_no_such_folder_are_user_errors(small_synthetic, tmp_path,
     assert "cannot record to" in capsys.readouterr().err
 
 
-def test_loops_closed_are_drawn_between_their_keyframes(tmp_path):
+def test_loops_that_hold_are_drawn_between_their_keyframes(tmp_path):
     needs_rerun()
     from types import SimpleNamespace
 
@@ -136,18 +136,21 @@ def test_loops_closed_are_drawn_between_their_keyframes(tmp_path):
 
     poses = np.tile(np.eye(4), (5, 1, 1))
     poses[:, 0, 3] = np.arange(5)
-    loops = SimpleNamespace(poses=list(poses), events=[])
+    loops = SimpleNamespace(poses=list(poses), held=[])
     slam = SimpleNamespace(loops=loops)
     rrd = tmp_path / "loops.rrd"
     viewer = RerunViewer(save=str(rrd))
     viewer.rec.set_time("frame", sequence=0)
     viewer._log_loops(slam)  # no loop yet: nothing drawn
-    loops.events.append(SimpleNamespace(old=0, new=4))
+    loops.held = [SimpleNamespace(old=0, new=4), SimpleNamespace(old=1, new=3)]
     viewer.rec.set_time("frame", sequence=1)
     viewer._log_loops(slam)
     viewer._log_loops(slam)  # unchanged: not logged again
+    loops.held = loops.held[:1]  # a later optimisation dropped the second loop
+    viewer.rec.set_time("frame", sequence=2)
+    viewer._log_loops(slam)
     viewer.rec.flush()
     viewer.rec.disconnect()
-    assert logged_frames(rrd)["/world/loop_edges"] == [1]
+    assert logged_frames(rrd)["/world/loop_edges"] == [1, 2]
     strip = last_logged(rrd, "/world/loop_edges", "LineStrips3D:strips")
     assert np.allclose(np.array(strip, dtype=float), [[0, 0, 0], [4, 0, 0]])

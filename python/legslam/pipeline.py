@@ -151,9 +151,11 @@ def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encode
 
 
 def _events(slam: SLAM) -> str:
-    """The progress line's count of relocalisations and loops closed, once there are any."""
+    """The progress line's count of relocalisations and loops closed (those a later
+    optimisation dropped left out), once there are any."""
     e = slam.trajectory_events()
-    n, m = len(e.get("relocalisations", ())), len(e.get("loop_closures", ()))
+    n = len(e.get("relocalisations", ()))
+    m = sum(c["dropped_at_frame"] is None for c in e.get("loop_closures", ()))
     return (f"  reloc {n}" if n else "") + (f"  loops {m}" if m else "")
 
 

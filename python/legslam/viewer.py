@@ -93,7 +93,7 @@ class RerunViewer:
         self._gt: list[np.ndarray] = []
         self._gt_anchor = None  # maps ground truth into the run's frame: first poses coincide
         self._basis = None  # fixed once features exist, so their colours stay put
-        self._loops_drawn = 0
+        self._loops_drawn: list = []
 
     def on_frame(self, index: int, frame, step, slam) -> None:
         rr, rec = self.rr, self.rec
@@ -129,15 +129,16 @@ class RerunViewer:
         self.rec.disconnect()
 
     def _log_loops(self, slam) -> None:
-        """Each loop closed as a line between its two keyframes (at their corrected poses),
-        logged again when a loop is added."""
+        """Each loop that holds as a line between its two keyframes (at their corrected poses),
+        logged again when a loop is added or dropped."""
         loops = slam.loops
-        if loops is None or len(loops.events) == self._loops_drawn:
+        held = [] if loops is None else [(e.old, e.new) for e in loops.held]
+        if held == self._loops_drawn:
             return
-        self._loops_drawn = len(loops.events)
+        self._loops_drawn = held
         centres = np.stack(loops.poses)[:, :3, 3]
         self.rec.log("world/loop_edges", self.rr.LineStrips3D(
-            [centres[[e.old, e.new]] for e in loops.events], colors=[230, 40, 230]))
+            [centres[list(pair)] for pair in held], colors=[230, 40, 230]))
 
     def _log_map(self, slam, pose) -> None:
         rr, rec = self.rr, self.rec

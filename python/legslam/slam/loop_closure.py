@@ -8,13 +8,17 @@ the map (each Gaussian with the keyframe that made it) and every frame with it.
 Odometry edges carry the error odometry really makes: a standard deviation that grows with
 the distance moved and the angle turned (`odometry_sigma_*`), never the near-certainty that
 would make a true loop look like an outlier to the solver's robust kernel.
+
+A loop edge kept when it was closed can still be dropped by a later optimisation, when the
+edges added since contradict it: its record then says at which frame (`dropped_at_frame`),
+and the poses go where the remaining edges put them.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Optional
 
 import numpy as np
@@ -32,7 +36,8 @@ log = logging.getLogger("legslam")
 @dataclass(frozen=True)
 class LoopClosed:
     """A loop edge between keyframes `new` and `old` kept by the optimisation, and the largest
-    keyframe correction it made (a record for metrics.json)."""
+    keyframe correction it made (a record for metrics.json); `dropped_at_frame`, the frame at
+    which a later optimisation dropped it (None while it holds)."""
 
     frame: int
     new: int
@@ -42,12 +47,14 @@ class LoopClosed:
     correction_cm: float
     correction_deg: float
     ms: float
+    dropped_at_frame: Optional[int] = None
 
     def as_dict(self) -> dict:
         return {"frame": self.frame, "keyframes": [self.old, self.new],
                 "similarity": round(self.similarity, 4), "inlier_ratio": round(self.inlier_ratio, 4),
                 "correction_cm": round(self.correction_cm, 3),
-                "correction_deg": round(self.correction_deg, 3), "ms": round(self.ms, 1)}
+                "correction_deg": round(self.correction_deg, 3), "ms": round(self.ms, 1),
+                "dropped_at_frame": self.dropped_at_frame}
 
 
 class LoopClosure:
@@ -65,6 +72,11 @@ class LoopClosure:
         self.rejected_covisible: list[dict] = []
         #: Per keyframe, the frame it was made from.
         self._frames: list[int] = []
+
+    @property
+    def held(self) -> list[LoopClosed]:
+        """The loops closed that no later optimisation dropped."""
+        return [e for e in self.events if e.dropped_at_frame is None]
 
     @property
     def poses(self) -> list[np.ndarray]:
@@ -143,12 +155,25 @@ class LoopClosure:
         before = np.stack(self.graph.poses)
         edges = list(self.graph.edges)
         result = self.graph.optimize()
+        now = self._frames[-1] if self._frames else None
         for k in result.rejected:  # logged by the graph
-            record = {"frame": self._frames[max(edges[k].i, edges[k].j)],
-                      "keyframes": sorted([edges[k].i, edges[k].j]),
+            e = edges[k]
+            record = {"frame": self._frames[max(e.i, e.j)], "keyframes": sorted([e.i, e.j]),
                       "chi2": round(float(result.chi2[k]), 2)}
-            (self.rejected if edges[k].kind == "loop" else self.rejected_covisible).append(record)
+            if e.kind != "loop":
+                self.rejected_covisible.append(record)
+                continue
+            self.rejected.append({**record, "dropped_at_frame": now})
+            self._drop(e.i, e.j, now)
         return before, set(result.rejected)
+
+    def _drop(self, old: int, new: int, frame: Optional[int]) -> None:
+        """Marks the loop closed between `old` and `new`, if it was, as dropped at `frame`."""
+        for n, ev in enumerate(self.events):
+            if (ev.old, ev.new) == (old, new) and ev.dropped_at_frame is None:
+                self.events[n] = replace(ev, dropped_at_frame=frame)
+                log.warning("the loop closed at frame %d (keyframes %d and %d) was dropped at frame "
+                            "%s: the edges added since contradict it", ev.frame, old, new, frame)
 
     def _corrections(self, before: np.ndarray) -> tuple[np.ndarray, float, float]:
         """Each keyframe's correction from `before` to the graph's poses (world to world), and
