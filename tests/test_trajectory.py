@@ -352,8 +352,8 @@ def test_a_loop_the_later_edges_contradict_is_marked_dropped(caplog):
     frame it was dropped at, and it no longer counts among the loops that hold."""
     from legslam.slam.covisibility import Covisible
     from legslam.slam.loop_closure import LoopClosure
-    from legslam.slam.pose_graph import relative
     from legslam.slam.place_recognition import Recognised
+    from legslam.slam.pose_graph import relative
 
     loops = straight_chain(LoopClosure(SLAMConfig(loop_min_gap=3), places=None), 10)
     chain = [p.copy() for p in loops.poses]
