@@ -607,6 +607,28 @@ def test_new_gaussians_are_seeded_on_a_grid_about_grow_width_wide():
         grow_stride(640, grow_width=0)
 
 
+def test_features_train_at_about_feature_width_and_below_the_colour():
+    def widths(width, **cfg):
+        """(colour, feature) widths of the finest training level, as the mapper is set."""
+        slam = SLAM(SLAMConfig(final_iters=0, **cfg), np.eye(3), width, width * 3 // 4)
+        c = slam.mapper.config()
+        return width >> c["finest_level"], width >> (c["finest_level"] + c["feature_level_offset"])
+
+    # The coarsest level at least 150 wide, one level below the colour at least, two at most.
+    assert widths(640) == (320, 160)
+    assert widths(600) == (600, 150)
+    assert widths(1200) == (600, 150)
+    assert widths(1280) == (320, 160)
+    assert widths(848) == (424, 212)
+    assert widths(160) == (160, 80)
+    assert widths(640, feature_width=320) == (320, 160)
+    assert widths(640, feature_width=16) == (320, 80)
+    with pytest.raises(ValueError, match="mapper.feature_level_offset is set from feature_width"):
+        widths(640, mapper={"feature_level_offset": 1})
+    with pytest.raises(ValueError, match="feature_width"):
+        widths(640, feature_width=0)
+
+
 def test_options_out_of_range_or_of_the_wrong_type_are_named(tmp_path, capsys):
     from legslam.slam.config import _RANGES
 
