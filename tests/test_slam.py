@@ -2,6 +2,7 @@
 or mapper cannot meet: each is compared against a run with that part disabled."""
 
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -623,10 +624,24 @@ def test_features_train_at_about_feature_width_and_below_the_colour():
     assert widths(160) == (160, 80)
     assert widths(640, feature_width=320) == (320, 160)
     assert widths(640, feature_width=16) == (320, 80)
-    with pytest.raises(ValueError, match="mapper.feature_level_offset is set from feature_width"):
-        widths(640, mapper={"feature_level_offset": 1})
     with pytest.raises(ValueError, match="feature_width"):
         widths(640, feature_width=0)
+
+
+def test_a_config_written_before_feature_width_still_reads(tmp_path, caplog):
+    # Runs of the version before wrote the then mapper option into config.json (as 1, its
+    # default); `legslam eval` and `--config` read such files.
+    old = SLAMConfig().to_dict()
+    old["mapper"]["feature_level_offset"] = 1
+    (tmp_path / "config.json").write_text(json.dumps(old))
+    with caplog.at_level(logging.WARNING, logger="legslam"):
+        assert SLAMConfig.from_file(tmp_path / "config.json") == SLAMConfig()
+    assert not caplog.records
+    # A value someone chose is not silently taken for another: it is named, with what to set.
+    with caplog.at_level(logging.WARNING, logger="legslam"):
+        cfg = SLAMConfig(mapper={"feature_level_offset": 2})
+    assert cfg == SLAMConfig()
+    assert "mapper.feature_level_offset is no longer read; it is set from feature_width" in caplog.text
 
 
 def test_options_out_of_range_or_of_the_wrong_type_are_named(tmp_path, capsys):

@@ -10,6 +10,7 @@ option wins where SLAMConfig sets engine options itself.
 from __future__ import annotations
 
 import json
+import logging
 import numbers
 import os
 from dataclasses import asdict, dataclass, field, fields, make_dataclass
@@ -22,6 +23,8 @@ from ..tracking import fitting_levels
 
 __all__ = ["SLAMConfig", "MapperOptions", "TrackerOptions", "DERIVED"]
 
+log = logging.getLogger("legslam")
+
 #: Engine options that SLAMConfig sets from options of its own: giving one in a section is an
 #: error naming the option to set instead, so neither silently overrides the other.
 DERIVED = {
@@ -30,6 +33,11 @@ DERIVED = {
                "grow_stride": "grow_width", "feature_level_offset": "feature_width"},
     "tracker": {},
 }
+
+#: Section options that became derived, with the default they had: config files written before
+#: (every run's config.json) still read. The old default is dropped quietly; another value with
+#: a warning naming the option to set instead.
+RETIRED = {"mapper": {"feature_level_offset": 1}, "tracker": {}}
 
 #: Where a SLAM run's defaults differ from the engine's: it tracks images already shrunk to
 #: `track_width`, from their own resolution, through as many levels as they have room for
@@ -80,6 +88,11 @@ def _section_class(section: str, engine_defaults: dict, doc: str) -> type:
         errors that say what to do instead."""
         if not isinstance(data, dict):
             raise ValueError(f"{section} must be a table of options, got {data!r}")
+        data = dict(data)
+        for name, default in RETIRED[section].items():
+            if name in data and data.pop(name) != default:
+                log.warning("%s: %s.%s is no longer read; it is set from %s, set that instead",
+                            source, section, name, DERIVED[section][name])
         for name in data:
             if name in DERIVED[section]:
                 raise ValueError(f"{source}: {section}.{name} is set from {DERIVED[section][name]}; "
