@@ -179,8 +179,9 @@ class SLAMConfig:
     #: one level below the colour (at most two): their target is the encoder's patch grid
     #: (16x16) upsampled, so finer pixels add cost, not information. A 640-wide input trains
     #: them at 160; a 600-wide one (whose colour trains at full resolution) at 150 rather than
-    #: 300: on Replica renders real time gained 0.2-1.3 dB and synchronous runs a quarter of
-    #: their time, with the same held-out feature agreement (README, *At the camera's pace*).
+    #: 300: on Replica renders real time gained 0.2-1.3 dB and synchronous runs were a fifth to
+    #: a quarter faster (0-0.4 dB less), with the same held-out feature agreement (README, *At
+    #: the camera's pace*).
     feature_width: int = 150
     #: Degree of the spherical harmonics of each Gaussian's colour (0: one colour seen alike
     #: from everywhere; 3, as LEG-SLAM and 3DGS, 16 coefficients a channel). On 7-Scenes, 200
