@@ -4,13 +4,14 @@ and the tracker's own frame-to-frame odometry on the same frames in the same pro
 
 Prints ATE RMSE (all frames, SE(3)-aligned, as `evo_ape -a`) and the median frame-to-frame
 relative pose error of SLAM and of the odometry, how well the frames agree with each other
-under the ground truth's poses and under SLAM's (see `view_agreement`), relocalisations, loops
+under the ground truth's poses and under SLAM's (`legslam.eval.view_agreement`), the same stretch
+by stretch beside SLAM's error there (`--stretch`), relocalisations, loops
 closed (time per closure) and covisibility edges, PSNR / SSIM / depth L1 of the
 final map rendered at the estimated pose of every 5th frame and of every keyframe, the number
 of Gaussians, peak memory, frames per second and the per-stage time table.
 
     python benches/bench_slam.py [PATH] [--max-frames N] [--stride S] [--no-features] [--out DIR]
-                                 [--config FILE] [--pace [SPEED]]
+                                 [--config FILE] [--pace [SPEED]] [--stretch FRAMES]
 
 `--pace` plays the frames as their camera delivered them (`legslam run --pace`): with
 `mapping_thread` the map then gets what a live camera's gaps between frames leave.
@@ -49,33 +50,26 @@ def odometry(seq) -> tuple[np.ndarray, float]:
     return np.stack(poses), float(np.median(times[1:]))
 
 
-def view_agreement(seq, trajectories: dict, every: int = 9, pairs: int = 400) -> dict:
-    """How well each trajectory (name: poses) makes frames agree with each other, needing no
-    ground truth: pairs of frames (every `every`-th, from the 3rd on, a seeded sample of at
-    most `pairs` whose views overlap on at least 30% under the first trajectory), each frame's
-    depth moved into the other by the poses. Per trajectory, the median over pairs of the
-    median depth disagreement (cm) and of the colour difference where they meet (8-bit
-    levels). A ground truth of its own, measured like this, says how far it can be trusted."""
-    from types import SimpleNamespace
+def by_stretch(seq, gt: np.ndarray, est: np.ndarray, length: int) -> list:
+    """Per stretch of `length` frames: the estimate's mean error after the whole run's
+    alignment, and how well the frames within the stretch agree under either trajectory
+    (`view_agreement`, every 3rd frame). Where a pseudo ground truth is the one in error, the
+    stretch it errs on shows the estimate both far from it and agreeing better with the frames."""
+    from legslam.eval import ate, view_agreement
 
-    from legslam.eval.consistency import depth_reprojection
-
-    frames = list(range(3, len(seq), every))
-    candidates = [(a, b) for n, a in enumerate(frames) for b in frames[n + 1:]]
-    order = np.random.default_rng(0).permutation(len(candidates))
-    first = next(iter(trajectories))
-    scores = {name: [] for name in trajectories}
-    for k in order[:pairs]:
-        a, b = (seq[i] for i in candidates[k])
-        views = {name: [SimpleNamespace(pose=poses[i], K=f.K, depth=f.depth, rgb=f.rgb)
-                        for i, f in zip(candidates[k], (a, b))] for name, poses in trajectories.items()}
-        if depth_reprojection(*views[first], 0.02)["overlap"] < 0.3:
+    errors = ate(gt, est)["errors"]
+    bounds = [*range(0, len(seq), length), len(seq)]
+    if len(bounds) > 2 and bounds[-1] - bounds[-2] < length // 2:
+        del bounds[-2]  # a short last stretch joins the one before
+    rows = []
+    for a, b in zip(bounds, bounds[1:]):
+        agree = view_agreement(seq, {"gt": gt, "slam": est}, every=3, pairs=60, frames=range(a, b))
+        if len(agree) < 2:
             continue
-        for name, (va, vb) in views.items():
-            r = depth_reprojection(va, vb, 0.02)
-            scores[name].append((r["median_cm"], r["colour_l1"]))
-    return {name: (len(v), float(np.nanmedian([d for d, _ in v])), float(np.median([c for _, c in v])))
-            for name, v in scores.items() if v}
+        rows.append({"frames": [a, b], "error_cm": float(100 * errors[a:b].mean()),
+                     "pairs": agree["gt"][0], "ground_truth": list(agree["gt"][1:]),
+                     "slam": list(agree["slam"][1:])})
+    return rows
 
 
 def median_rpe_cm(gt: np.ndarray, est: np.ndarray) -> float:
@@ -90,6 +84,8 @@ def main() -> int:
     ap.add_argument("path", nargs="?", default=str(DEFAULT))
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--stride", type=int, default=1)
+    ap.add_argument("--stretch", type=int, default=100,
+                    help="frames per stretch of the per-stretch error and agreement table")
     ap.add_argument("--no-features", action="store_true")
     ap.add_argument("--config", default=None, help="SLAM config file (.toml/.json)")
     ap.add_argument("--out", default="/tmp/legslam-bench-slam")
@@ -101,6 +97,7 @@ def main() -> int:
         return 1
     from legslam.cli.progress import Progress
     from legslam.datasets import open as open_dataset
+    from legslam.eval import view_agreement
     from legslam.pipeline import run
     from legslam.slam import SLAMConfig
 
@@ -129,6 +126,7 @@ def main() -> int:
     for name, (n, depth_cm, colour) in agreement.items():
         print(f"| frames' agreement under the {name} poses ({n} pairs): depth / colour (median) | "
               f"{depth_cm:.2f} cm / {colour:.1f} levels |")
+    stretches = by_stretch(seq, gt, slam_poses, args.stretch)
     after = ", ".join(f"{r['frame']}: {r['lost_frames']}" for r in relocs)
     print(f"| relocalisations (frame: lost frames before) | {len(relocs)} ({after}) |")
     loop_ms = [e["ms"] for e in loops]
@@ -156,6 +154,12 @@ def main() -> int:
               f"latest | {p['late_frames']}, {p['max_lag_s']:.2f} s |")
     its = t["mapping_iterations"]
     print(f"| mapping iterations while frames came in / final | {its['while_frames_came_in']} / {its['final']} |")
+    print(f"\n| frames | SLAM's error (mean, whole-run alignment) | agreement under the ground truth "
+          f"(pairs): depth / colour | under SLAM |\n|---|---|---|---|")
+    for r in stretches:
+        print(f"| {r['frames'][0]}-{r['frames'][1] - 1} | {r['error_cm']:.2f} cm | ({r['pairs']}) "
+              f"{r['ground_truth'][0]:.2f} cm / {r['ground_truth'][1]:.1f} | "
+              f"{r['slam'][0]:.2f} cm / {r['slam'][1]:.1f} |")
     print("\n| stage | mean ms | median ms | total s |\n|---|---|---|---|")
     for k, v in t.items():
         if isinstance(v, dict) and "mean_ms" in v:
@@ -167,7 +171,7 @@ def main() -> int:
          "rpe_median_cm": {"slam": rpe_slam, "odometry": rpe_odo},
          "view_agreement": {k: {"pairs": n, "depth_cm": d, "colour_levels": c}
                             for k, (n, d, c) in agreement.items()},
-         "peak_mb": peak_mb}, indent=2))
+         "stretches": stretches, "peak_mb": peak_mb}, indent=2))
     return 0
 
 

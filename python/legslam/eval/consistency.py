@@ -41,3 +41,36 @@ def depth_reprojection(frame_a, frame_b, tolerance: float = 0.05) -> dict:
                                  - frame_b.rgb[vb[ok], ub[ok]]).mean())
     return {"median_cm": float(np.median(dz) * 100), "within": float((dz <= tolerance).mean()),
             "overlap": float(dz.size / max(len(z), 1)), "n": int(dz.size), "colour_l1": colour_l1}
+
+
+def view_agreement(seq, trajectories: dict, every: int = 9, pairs: int = 400,
+                   frames: range | None = None) -> dict:
+    """How well each trajectory (name: (N,4,4) camera-to-world poses, one per frame of `seq`)
+    makes the frames agree with each other, needing no ground truth: pairs of frames (every
+    `every`-th of `frames`, all of them by default, from the 3rd on; a seeded sample of at most
+    `pairs` whose views overlap on at least 30% under the first trajectory), each frame's depth
+    moved into the other by the poses. Per trajectory, (pairs compared, the median over pairs
+    of the median depth disagreement in cm, the median colour difference where they meet in
+    8-bit levels). A ground truth of its own, measured like this, says how far it can be
+    trusted. The figures do not depend on where a trajectory is anchored (only relative poses
+    enter), so trajectories need no alignment."""
+    from types import SimpleNamespace
+
+    frames = range(len(seq)) if frames is None else frames
+    picked = list(frames)[3::every]
+    candidates = [(a, b) for n, a in enumerate(picked) for b in picked[n + 1:]]
+    order = np.random.default_rng(0).permutation(len(candidates))
+    first = next(iter(trajectories))
+    scores = {name: [] for name in trajectories}
+    for k in order[:pairs]:
+        a, b = (seq[i] for i in candidates[k])
+        views = {name: [SimpleNamespace(pose=poses[i], K=f.K, depth=f.depth, rgb=f.rgb)
+                        for i, f in zip(candidates[k], (a, b))] for name, poses in trajectories.items()}
+        if depth_reprojection(*views[first], 0.02)["overlap"] < 0.3:
+            continue
+        for name, (va, vb) in views.items():
+            r = depth_reprojection(va, vb, 0.02)
+            scores[name].append((r["median_cm"], r["colour_l1"]))
+    return {name: (len(v), float(np.nanmedian([d for d, _ in v])),
+                   float(np.median([c for _, c in v])) if v[0][1] is not None else float("nan"))
+            for name, v in scores.items() if v}
