@@ -310,24 +310,21 @@ def test_view_agreement_ranks_the_true_poses_first_wherever_the_trajectory_is_an
 
     from legslam.datasets import open as open_dataset
 
-    def se3_exp(v):  # translation, then rotation vector
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = cv2.Rodrigues(v[3:])[0], v[:3]
-        return T
-
     seq = open_dataset(small_synthetic)
     true = np.stack([seq[i].pose for i in range(len(seq))])
     rng = np.random.default_rng(3)
     # Each pose off by ~2 cm and ~1 degree, as a drifting tracker's would be.
-    off = np.stack([p @ se3_exp(np.concatenate([rng.normal(0, 0.012, 3), rng.normal(0, 0.01, 3)]))
-                    for p in true])
+    off = true.copy()
+    for p in off:
+        p[:3, :3] = p[:3, :3] @ cv2.Rodrigues(rng.normal(0, 0.01, 3))[0]
+        p[:3, 3] += rng.normal(0, 0.012, 3)
     got = E.view_agreement(seq, {"true": true, "off": off}, every=1)
     assert got["true"][0] == got["off"][0] >= 10  # the same pairs, chosen by the first trajectory
     assert got["true"][1] < 0.5 * got["off"][1]  # depth disagreement (cm)
     assert got["true"][2] < got["off"][2]  # colour difference where the surfaces meet
     # Only relative poses enter: the whole trajectory moved and turned changes nothing.
-    T = se3_exp(np.array([0.3, -0.2, 1.0, 0.2, 0.5, -0.1]))
-    moved = E.view_agreement(seq, {"true": T @ true, "off": T @ off}, every=1)
+    R, t = cv2.Rodrigues(np.array([0.2, 0.5, -0.1]))[0], np.array([0.3, -0.2, 1.0])
+    moved = E.view_agreement(seq, {"true": transformed(true, R, t), "off": transformed(off, R, t)}, every=1)
     for name in got:
         assert moved[name][0] == got[name][0]
         np.testing.assert_allclose(moved[name][1:], got[name][1:], rtol=1e-6)
