@@ -10,6 +10,7 @@ import json
 import os
 import signal
 import sys
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -27,8 +28,8 @@ FAST = ["--no-features", "--quiet", "--final-iters", "5"]
 
 
 class Frame:
-    def __init__(self, data, number: int, ms: float, fmt: str):
-        self.data, self.number, self.ms, self.fmt = data, number, ms, fmt
+    def __init__(self, data, number: int, ms: float, fmt: str, kind: str):
+        self.data, self.number, self.ms, self.fmt, self.kind = data, number, ms, fmt, kind
 
     def get_data(self):
         return self.data
@@ -40,7 +41,7 @@ class Frame:
         return self.ms
 
     def get_profile(self):
-        return SimpleNamespace(format=lambda: self.fmt)
+        return SimpleNamespace(format=lambda: self.fmt, stream_type=lambda: self.kind)
 
 
 class Frameset:
@@ -56,10 +57,14 @@ class Frameset:
     def get_depth_frame(self):
         return self.depth
 
+    def of(self, kind: str) -> Frame:
+        return self.colour if kind == "color" else self.depth
+
 
 class FakeSDK:
     """pyrealsense2's names that RealSenseCamera uses. `bursts`: lists of frame numbers that
-    arrive together; `on_wait(n)` runs when the n-th burst is waited for."""
+    arrive together at a live camera's pipeline (a recording's sensors hand over all of them,
+    each sensor from a thread of its own); `on_wait(n)` runs when the n-th burst is waited for."""
 
     stream = SimpleNamespace(color="color", depth="depth")
     format = SimpleNamespace(rgb8="rgb8", bgr8="bgr8", rgba8="rgba8", bgra8="bgra8", z16="z16")
@@ -70,7 +75,7 @@ class FakeSDK:
         self.shots, self.bursts, self.colour_format = shots, [list(b) for b in bursts], colour_format
         self.sensors = sensors
         self.start_error, self.on_wait = start_error, on_wait or (lambda n: None)
-        self.log = []
+        self.log, self.playing = [], []
 
     # -- the module's classes
     def pipeline(self):
@@ -93,9 +98,6 @@ class FakeSDK:
                 return sdk.device()
         return Context()
 
-    def syncer(self, capacity):
-        return Pipeline(self)
-
     def device(self):
         sdk = self
 
@@ -104,16 +106,22 @@ class FakeSDK:
                 self.kind = kind
 
             def get_stream_profiles(self):
-                return [sdk.colour_profile() if self.kind == "color" else SimpleNamespace(stream_type=lambda: "depth")]
+                return [sdk.profile(self.kind)]
 
             def open(self, profiles):
                 sdk.log.append(("open", self.kind))
 
-            def start(self, sync):
+            def start(self, callback):
                 # Real time off before the sensors start, or the first frames are lost.
                 sdk.log.append(("start", self.kind, ("real_time", False) in sdk.log))
+                numbers = [n for burst in sdk.bursts for n in burst]
+                self.playing = threading.Thread(target=lambda: [callback(sdk.frameset(n).of(self.kind))
+                                                                for n in numbers])
+                self.playing.start()
+                sdk.playing.append(self.playing)
 
             def stop(self):
+                self.playing.join()
                 sdk.log.append(("stop", self.kind))
 
             def close(self):
@@ -122,17 +130,17 @@ class FakeSDK:
         return SimpleNamespace(
             first_depth_sensor=lambda: SimpleNamespace(get_depth_scale=lambda: DEPTH_UNITS),
             query_sensors=lambda: [Sensor(kind) for kind in sdk.sensors],
-            as_playback=lambda: SimpleNamespace(set_real_time=lambda on: sdk.log.append(("real_time", on)),
-                                                current_status=lambda: "playing"))
+            as_playback=lambda: SimpleNamespace(
+                set_real_time=lambda on: sdk.log.append(("real_time", on)),
+                pause=lambda: sdk.log.append("pause"), resume=lambda: sdk.log.append("resume"),
+                current_status=lambda: "playing" if any(t.is_alive() for t in sdk.playing) else "stopped"))
 
-    def colour_profile(self):
+    def profile(self, kind):
+        """A stream's; the stand-in's depth is on the colour camera, aligned already."""
         intr = SimpleNamespace(fx=128.0, fy=129.0, ppx=79.5, ppy=59.0, width=W, height=H, coeffs=[0.0] * 5)
-        return SimpleNamespace(stream_type=lambda: "color",
+        same = SimpleNamespace(rotation=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], translation=[0.0, 0, 0])
+        return SimpleNamespace(stream_type=lambda: kind, get_extrinsics_to=lambda other: same,
                                as_video_stream_profile=lambda: SimpleNamespace(get_intrinsics=lambda: intr))
-
-    def align(self, to):
-        assert to == "color"
-        return SimpleNamespace(process=lambda frames: frames)  # the stand-in's depth is aligned already
 
     # -- frames
     def frameset(self, n: int) -> Frameset:
@@ -140,11 +148,11 @@ class FakeSDK:
         rgb = s.rgb if self.colour_format == "rgb8" else np.ascontiguousarray(s.rgb[..., ::-1])
         z16 = np.round(s.depth / DEPTH_UNITS).astype(np.uint16)
         ms = 1000.0 * s.t
-        return Frameset(Frame(rgb, n, ms, self.colour_format), Frame(z16, n, ms, "z16"))
+        return Frameset(Frame(rgb, n, ms, self.colour_format, "color"), Frame(z16, n, ms, "z16", "depth"))
 
 
 class Pipeline:
-    """The SDK's pipeline (a live camera) and, for a recording, its syncer: frames in bursts."""
+    """The SDK's pipeline of a live camera: framesets in bursts."""
 
     def __init__(self, sdk: FakeSDK):
         self.sdk, self.burst, self.waits = sdk, [], 0
@@ -152,7 +160,7 @@ class Pipeline:
     def start(self, cfg):
         if self.sdk.start_error:
             raise RuntimeError(self.sdk.start_error)
-        return SimpleNamespace(get_device=self.sdk.device, get_stream=lambda s: self.sdk.colour_profile())
+        return SimpleNamespace(get_device=self.sdk.device, get_stream=self.sdk.profile)
 
     def try_wait_for_frames(self, timeout_ms):
         self.sdk.on_wait(self.waits)
@@ -205,7 +213,9 @@ def test_a_recording_played_back_gives_every_frame(tmp_path, shots):
     taken = [f for _, f in cam.frames()]
     assert len(taken) == 4 and cam.dropped == 0 and "poll" not in sdk.log
     assert ("load_device", str(bag)) in sdk.log and ("real_time", False) in sdk.log
-    assert ("start", "color", True) in sdk.log and ("start", "depth", True) in sdk.log
+    # Paused while the sensors start: the first started would play, and the other lose frames.
+    starts = [sdk.log.index(("start", kind, True)) for kind in ("color", "depth")]
+    assert sdk.log.index("pause") < min(starts) and max(starts) < sdk.log.index("resume")
     assert ("stop", "color") in sdk.log and ("stop", "depth") in sdk.log
     np.testing.assert_array_equal(taken[3].rgb, shots[3].rgb)  # bgr8 turned around
 
@@ -272,10 +282,9 @@ def test_a_camera_that_stops_delivering_stops_the_run_with_its_work_kept(tmp_pat
 
 
 def test_the_sdk_plays_back_its_own_recording_and_the_bag_reader_reads_it_too(tmp_path):
-    """Recordings the real SDK writes (from a software device), read by legslam's bag reader
-    (its registration, a depth camera turned 2 degrees and 1.5 cm aside) and played back
-    through the SDK (its alignment, which keeps the depth camera's z: a camera beside colour,
-    not turned): both must give the colour camera's depth."""
+    """A recording the real SDK writes (from a software device), of a depth camera turned 2
+    degrees and 1.5 cm aside: read by legslam's bag reader and played back through the SDK,
+    both must give every frame, with the colour camera's depth."""
     pytest.importorskip("pyrealsense2", reason="pyrealsense2 is an optional extra: pip install 'legslam[realsense]'")
     pytest.importorskip("rosbags", reason="rosbags is an optional extra: pip install 'legslam[bags]'")
     from recordings import record_realsense
@@ -284,37 +293,61 @@ def test_the_sdk_plays_back_its_own_recording_and_the_bag_reader_reads_it_too(tm
     from legslam.datasets import open as open_dataset
     from legslam.datasets.synthetic import intrinsics
 
-    w, h = 96, 72
+    w, h, n = 96, 72, 6
     K_c, K_d = intrinsics(w, h), np.array([[90.0, 0, 59.5], [0, 90.0, 44.5], [0, 0, 1]])
-    shots, _ = synthetic_shots(4, w, h, K=K_c)
-
-    def record(name, depth_pose):
-        seen, _ = synthetic_shots(4, 120, 90, K=K_d, poses=depth_pose)
-        return record_realsense(tmp_path / name, shots, K_c, K_d, [s.depth for s in seen],
-                                np.linalg.inv(shots[0].pose) @ depth_pose[0], depth_units=0.0005)
+    shots, _ = synthetic_shots(n, w, h, K=K_c)
+    depth_pose = [look_at(s.pose, (-0.015, 0.0, 0.0)) for s in shots]
+    seen, _ = synthetic_shots(n, 120, 90, K=K_d, poses=depth_pose)
+    rec = record_realsense(tmp_path / "turned.db3", shots, K_c, K_d, [s.depth for s in seen],
+                           np.linalg.inv(shots[0].pose) @ depth_pose[0], depth_units=0.0005)
 
     def close(got, want, tolerance):
         both = (got > 0) & (want > 0)
         return both.mean() > 0.6 and np.median(np.abs(got[both] - want[both])) < tolerance
 
-    seq = open_dataset(record("turned.db3", [look_at(s.pose, (-0.015, 0.0, 0.0)) for s in shots]))
-    assert seq.format == "bag" and len(seq) == 4 and seq.depth_scale == pytest.approx(2000)
+    seq = open_dataset(rec)
+    assert seq.format == "bag" and len(seq) == n and seq.depth_scale == pytest.approx(2000)
     np.testing.assert_allclose(seq.K, K_c)
-    for k in range(4):
+    for k in range(n):
         np.testing.assert_array_equal(seq[k].rgb, shots[k].rgb)
         assert close(seq[k].depth, shots[k].depth, 0.01)
 
-    beside = np.eye(4)
-    beside[0, 3] = -0.015
-    cam = RealSenseCamera(record("beside.db3", [s.pose @ beside for s in shots]))
+    cam = RealSenseCamera(rec)
     cam.start()
     played = [f for _, f in cam.frames()]
     np.testing.assert_allclose(cam.K, K_c, atol=1e-4)
-    # The SDK delivers the first frame's colour and depth apart, and it is skipped; the bag
-    # reader above read all four.
-    assert [f.index for f in played] == [0, 1, 2] and cam.dropped == 0
-    for f in played:
-        s = shots[round((f.timestamp - shots[0].t) * 30)]
+    assert len(played) == n and cam.dropped == 0
+    for f, s in zip(played, shots):
         assert f.timestamp == pytest.approx(s.t, abs=1e-3)
         np.testing.assert_array_equal(f.rgb, s.rgb)
-        assert close(f.depth, s.depth, 0.02)  # the SDK's alignment at 96x72
+        assert close(f.depth, s.depth, 0.01)
+
+    cam = RealSenseCamera(rec, max_frames=2)  # stopped while the playback waits to hand over more
+    cam.start()
+    assert [f.index for _, f in cam.frames()] == [0, 1]
+
+
+def test_colour_and_depth_arriving_apart_are_paired_by_nearest_timestamp():
+    """As a recording's two sensors hand frames over: depth a few ms off colour, one depth
+    frame missing, depth running behind colour, a stray depth frame between two colour ones."""
+    from legslam.datasets.realsense import Image, Pairing
+
+    def img(n, t):
+        return Image(n, t, np.zeros((1, 1)), "z16")
+
+    colour = [img(n, n / 30) for n in range(10)]
+    depth = [img(n, n / 30 + 0.004 * (-1) ** n) for n in range(10) if n != 4] + [img(99, 6.5 / 30)]
+    depth.sort(key=lambda d: d.t)
+    arrivals = [(True, c) for c in colour[:5]] + [(False, d) for d in depth[:6]]
+    arrivals += [x for pair in zip([(True, c) for c in colour[5:9]], [(False, d) for d in depth[6:]]) for x in pair]
+    arrivals.append((True, colour[9]))
+    pairing, pairs = Pairing(), []
+    for is_colour, x in arrivals:
+        pairing.add(is_colour, x)
+        while (p := pairing.pop()) is not None:
+            pairs.append(p)
+    assert len(pairs) == 8  # the last colour frame waits for depth that could still be nearer
+    while (p := pairing.pop(ended=True)) is not None:
+        pairs.append(p)
+    assert [(c.number, d.number) for c, d in pairs] == [(n, n) for n in range(10) if n != 4]
+    assert pairing.unpaired == 1 and not pairing.colour

@@ -9,36 +9,47 @@ frames come once, as they are taken.
     cam.dropped                              # frames the camera delivered that were not taken
     cam.recording()                          # the frames taken, as a Sequence (a plain folder)
 
-Depth is aligned to the colour camera by the SDK (rs.align), so frames carry the colour
-stream's intrinsics; depth is scaled by the device's depth units. Live, each frame taken is
-the newest the camera has delivered, and the frames that came while SLAM worked on the one
-before are dropped (counted from the camera's frame numbers); played back, every frame the
-SDK delivers is taken (it does not play in real time; it delivers a recording's first frame's
-colour and depth apart, and that frame is skipped: legslam's bag reader, without the SDK, reads
-it). Each frame taken is written to `record_to` as a plain folder dataset (lossless PNGs,
-camera.json, timestamps.txt), so that the run can be evaluated, and run again offline.
+Depth is registered to the colour camera (datasets.registration, from the two streams'
+intrinsics and the device's extrinsics between them), so frames carry the colour stream's
+intrinsics; depth is scaled by the device's depth units. Live, each frame taken is the newest
+the camera has delivered, and the frames that came while SLAM worked on the one before are
+dropped (counted from the camera's frame numbers). Played back, every frame of the recording is
+taken: the playback is not real time, each sensor hands its frames to legslam and the playback
+waits while they wait to be taken, and colour and depth are paired by nearest timestamp as
+legslam's bag reader pairs them. (The SDK's syncer, fed the same way, dropped colour frames
+when the machine was busy.) Each frame taken is written to `record_to` as a plain folder
+dataset (lossless PNGs, camera.json, timestamps.txt), so that the run can be evaluated, and
+run again offline.
 """
 
 from __future__ import annotations
 
 import logging
+import queue
 import threading
+from collections import deque
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterator, NamedTuple, Optional
 
 import numpy as np
 
 from .base import DatasetError, Frame, make_K
 from .folder import FolderSequence, FolderWriter
+from .registration import register_depth
+from .tum import associate
 
 log = logging.getLogger("legslam")
 
 # A live camera that delivers nothing for this long is gone; a recording played back is over.
 TIMEOUT_MS = 5000
-# How long a recording read to its end is waited on for the framesets still on their way.
+# How long a recording played to its end is waited on for the frames still on their way.
 DRAIN_MS = 250
-# Framesets a played-back recording's syncer holds (the playback waits while it is full).
-SYNC_QUEUE = 4
+# Frames a played-back recording hands over before its playback waits for them to be taken.
+PLAYBACK_QUEUE = 8
+# Colour and depth further apart than this are not a pair (seconds; the bag reader's too).
+MAX_TIME_DIFF = 0.02
+# A colour frame whose depth has not come by the time colour this much newer has is unpaired.
+PAIR_WAIT_S = 1.0
 
 
 def import_sdk():
@@ -49,6 +60,25 @@ def import_sdk():
         raise DatasetError("a RealSense camera needs Intel's SDK for Python: pip install 'legslam[realsense]' "
                            "(pyrealsense2)") from None
     return pyrealsense2
+
+
+class Image(NamedTuple):
+    """One stream's frame, copied out of the SDK (whose frames are recycled)."""
+    number: int
+    t: float  # seconds
+    data: np.ndarray
+    format: object
+
+
+def copied(frame) -> Image:
+    return Image(frame.get_frame_number(), frame.get_timestamp() / 1e3, np.array(frame.get_data()),
+                 frame.get_profile().format())
+
+
+def video(profile) -> tuple:
+    """(K, (width, height), distortion coefficients) of a video stream profile."""
+    intr = profile.as_video_stream_profile().get_intrinsics()
+    return make_K(intr.fx, intr.fy, intr.ppx, intr.ppy), (int(intr.width), int(intr.height)), list(intr.coeffs)
 
 
 class RealSenseCamera:
@@ -82,16 +112,27 @@ class RealSenseCamera:
         except RuntimeError as e:
             hint = "" if self.file else " (is one connected, and not in use by another program?)"
             raise DatasetError(f"cannot start {where}: {e}{hint}") from None
-        intr = source.colour.as_video_stream_profile().get_intrinsics()
-        if any(intr.coeffs):
+        self.K, size, coeffs = video(source.colour)
+        if any(coeffs):
             log.warning("%s: the colour camera's distortion (%s) is ignored: frames are taken as pinhole "
-                        "images", where, ", ".join(f"{c:.4g}" for c in intr.coeffs))
-        self.K = make_K(intr.fx, intr.fy, intr.ppx, intr.ppy)
-        self.width, self.height = int(intr.width), int(intr.height)
+                        "images", where, ", ".join(f"{c:.4g}" for c in coeffs))
+        self.width, self.height = size
         self.depth_scale = 1.0 / float(source.device.first_depth_sensor().get_depth_scale())
-        self._rs, self._pipe, self._align = rs, source, rs.align(rs.stream.color)
+        self._register = self._registration(source)
+        self._rs, self._pipe = rs, source
         if record_to is not None:
             self._writer = FolderWriter(record_to, self.K, self.width, self.height, self.depth_scale)
+
+    def _registration(self, source) -> Optional[tuple]:
+        """(K_depth, colour_from_depth in depth units) when depth is on a camera of its own."""
+        K_depth, size, _ = video(source.depth)
+        ext = source.depth.get_extrinsics_to(source.colour)
+        motion = np.eye(4)
+        motion[:3, :3] = np.reshape(ext.rotation, (3, 3)).T  # the SDK's is column-major
+        motion[:3, 3] = np.asarray(ext.translation) * self.depth_scale
+        if np.allclose(K_depth, self.K) and size == (self.width, self.height) and np.allclose(motion, np.eye(4)):
+            return None
+        return K_depth, motion
 
     def stop(self) -> None:
         """Ends `frames()` before its next frame (safe from a signal handler or another thread)."""
@@ -104,20 +145,15 @@ class RealSenseCamera:
         last, k = None, 0
         try:
             while not self._stop.is_set() and (self.max_frames is None or k < self.max_frames):
-                frames = self._next()
-                if frames is None:
+                pair = self._pipe.next()
+                if pair is None:
                     break
-                frames = self._align.process(frames)
-                colour, depth = frames.get_color_frame(), frames.get_depth_frame()
-                if not colour or not depth:
-                    continue
-                n = colour.get_frame_number()
-                if last is not None and n > last + 1:
-                    self.dropped += n - last - 1
-                last = n
-                frame = Frame(rgb=self._rgb(colour),
-                              depth=np.asanyarray(depth.get_data()).astype(np.float32) / np.float32(self.depth_scale),
-                              K=self.K.copy(), pose=None, timestamp=colour.get_timestamp() / 1e3, index=k)
+                colour, depth = pair
+                if last is not None and colour.number > last + 1:
+                    self.dropped += colour.number - last - 1
+                last = colour.number
+                frame = Frame(rgb=self._rgb(colour), depth=self._depth(depth), K=self.K.copy(), pose=None,
+                              timestamp=colour.t, index=k)
                 if self._writer is not None:
                     self._writer.add(frame)
                 yield k, frame
@@ -139,59 +175,67 @@ class RealSenseCamera:
             raise RuntimeError("the camera was started without record_to")
         return FolderSequence(self._writer.path)
 
-    def _next(self):
-        """The next frameset: live, the newest delivered; None at a recording's end."""
-        ok, frames = self._pipe.try_wait_for_frames(TIMEOUT_MS)
-        if not ok:
-            if self.file is not None:
-                return None
-            raise DatasetError(f"no frames from the RealSense camera for {TIMEOUT_MS / 1e3:.0f} s (disconnected?)")
-        if self.file is None:
-            while True:  # take the newest: the ones before it are dropped
-                newer = self._pipe.poll_for_frames()
-                if not newer:
-                    break
-                frames = newer
-        return frames
-
-    def _rgb(self, colour) -> np.ndarray:
-        img = np.asanyarray(colour.get_data())
-        fmt = colour.get_profile().format()
+    def _rgb(self, colour: Image) -> np.ndarray:
         rs = self._rs
-        if fmt in (rs.format.rgb8, rs.format.rgba8):
-            return np.array(img[..., :3])
-        if fmt in (rs.format.bgr8, rs.format.bgra8):
-            return np.ascontiguousarray(img[..., 2::-1])
-        raise DatasetError(f"{self.path}: colour frames in {fmt} cannot be read (rgb8, bgr8, rgba8, bgra8 can)")
+        if colour.format in (rs.format.rgb8, rs.format.rgba8):
+            return np.ascontiguousarray(colour.data[..., :3])
+        if colour.format in (rs.format.bgr8, rs.format.bgra8):
+            return np.ascontiguousarray(colour.data[..., 2::-1])
+        raise DatasetError(f"{self.path}: colour frames in {colour.format} cannot be read (rgb8, bgr8, rgba8, bgra8 "
+                           "can)")
+
+    def _depth(self, depth: Image) -> np.ndarray:
+        raw = depth.data
+        if self._register is not None:
+            K_depth, motion = self._register
+            raw = register_depth(raw, K_depth, self.K, motion, (self.width, self.height))
+        return raw.astype(np.float32) / np.float32(self.depth_scale)
 
 
 class _Live:
-    """A camera's colour and depth streams through the SDK's pipeline."""
+    """A camera's colour and depth streams through the SDK's pipeline, which pairs them."""
 
     def __init__(self, rs, width: int, height: int, fps: int):
         cfg, self._pipe = rs.config(), rs.pipeline()
         cfg.enable_stream(rs.stream.color, width, height, rs.format.rgb8, fps)
         cfg.enable_stream(rs.stream.depth, width, height, rs.format.z16, fps)
         profile = self._pipe.start(cfg)
-        self.device, self.colour = profile.get_device(), profile.get_stream(rs.stream.color)
-        self.try_wait_for_frames, self.poll_for_frames = self._pipe.try_wait_for_frames, self._pipe.poll_for_frames
+        self.device = profile.get_device()
+        self.colour, self.depth = profile.get_stream(rs.stream.color), profile.get_stream(rs.stream.depth)
+
+    def next(self) -> tuple:
+        """The newest (colour, depth) the camera has delivered: the ones before it are dropped."""
+        while True:
+            ok, frames = self._pipe.try_wait_for_frames(TIMEOUT_MS)
+            if not ok:
+                raise DatasetError(f"no frames from the RealSense camera for {TIMEOUT_MS / 1e3:.0f} s "
+                                   "(disconnected?)")
+            while True:
+                newer = self._pipe.poll_for_frames()
+                if not newer:
+                    break
+                frames = newer
+            colour, depth = frames.get_color_frame(), frames.get_depth_frame()
+            if colour and depth:
+                return copied(colour), copied(depth)
 
     def stop(self) -> None:
         self._pipe.stop()
 
 
 class _Playback:
-    """A recording's colour and depth sensors into one syncer, started only once the playback
-    is made not real-time: then it waits for each frame to be taken, and reads every one. (A
-    pipeline starts playing before it can be told so, and loses the first frames a few runs in
-    ten; the syncer still delivers the very first frame's two streams apart, and that frame is
-    skipped.)"""
+    """A recording's colour and depth sensors, each handing its frames to one queue, started
+    while the playback is paused and not real time: then the playback waits while the queue is
+    full, and every frame of both streams arrives. (A pipeline starts playing before it can be
+    told so; a sensor started while another plays loses its first frames.)"""
 
     def __init__(self, rs, file: Path):
         self.device = rs.context().load_device(str(file))
         self._playback, self._stopped = self.device.as_playback(), rs.playback_status.stopped
         self._playback.set_real_time(False)
-        self._sync, self._sensors, kinds = rs.syncer(SYNC_QUEUE), [], {}
+        self._queue, self._closing = queue.Queue(PLAYBACK_QUEUE), threading.Event()
+        self._pairs = Pairing()
+        self._sensors, kinds = [], {}
         for sensor in self.device.query_sensors():  # a D405 has both streams on one sensor
             profiles = [p for p in sensor.get_stream_profiles() if p.stream_type() in (rs.stream.color, rs.stream.depth)]
             kinds.update((p.stream_type(), p) for p in profiles)
@@ -201,20 +245,73 @@ class _Playback:
         if len(kinds) < 2:
             raise RuntimeError("the recording has no colour stream" if rs.stream.depth in kinds
                                else "the recording has no depth stream")
-        self.colour = kinds[rs.stream.color]
+        self.colour, self.depth = kinds[rs.stream.color], kinds[rs.stream.depth]
+        is_colour = rs.stream.color
+        self._playback.pause()
         for sensor in self._sensors:
-            sensor.start(self._sync)
+            sensor.start(lambda f: self._take(f.get_profile().stream_type() == is_colour, copied(f)))
+        self._playback.resume()
 
-    def try_wait_for_frames(self, timeout_ms: int):
-        """The next frameset, waited for in slices: the playback may stop while it is waited for."""
-        for _ in range(max(1, timeout_ms // DRAIN_MS)):
+    def _take(self, is_colour: bool, img: Image) -> None:
+        """On the SDK's thread: waits while the queue is full, and so does the playback."""
+        while not self._closing.is_set():
+            try:
+                return self._queue.put((is_colour, img), timeout=0.1)
+            except queue.Full:
+                pass
+
+    def next(self) -> Optional[tuple]:
+        """The next (colour, depth) pair of the recording, None at its end."""
+        quiet = 0
+        while (pair := self._pairs.pop()) is None:
             stopped = self._playback.current_status() == self._stopped
-            ok, frames = self._sync.try_wait_for_frames(DRAIN_MS)
-            if ok or stopped:  # read to its end, and nothing more came for DRAIN_MS
-                return ok, frames
-        return False, None
+            try:
+                self._pairs.add(*self._queue.get(timeout=DRAIN_MS / 1e3))
+                quiet = 0
+            except queue.Empty:
+                quiet += DRAIN_MS
+                if stopped or quiet >= TIMEOUT_MS:  # played to its end, and nothing came for DRAIN_MS
+                    return self._pairs.pop(ended=True)
+        return pair
 
     def stop(self) -> None:
+        self._closing.set()  # a callback waiting on the queue returns, and the sensors can stop
         for sensor in self._sensors:
             sensor.stop()
             sensor.close()
+        if self._pairs.unpaired:
+            log.warning("%d colour frames of the recording had no depth frame within %.0f ms, and were skipped",
+                        self._pairs.unpaired, MAX_TIME_DIFF * 1e3)
+
+
+class Pairing:
+    """Colour and depth frames as they arrive, in pairs of nearest timestamp (datasets.tum's
+    associate, on the frames still waiting): the oldest colour frame is paired once no depth
+    frame still to come could be nearer to it."""
+
+    def __init__(self):
+        self.colour, self.depth, self.unpaired = deque(), deque(), 0
+
+    def add(self, is_colour: bool, img: Image) -> None:
+        (self.colour if is_colour else self.depth).append(img)
+
+    def pop(self, ended: bool = False) -> Optional[tuple]:
+        """The oldest colour frame and its depth; None until it is known (at the end: none left)."""
+        while self.colour:
+            c = self.colour[0]
+            settled = (ended or (self.depth and self.depth[-1].t > c.t + MAX_TIME_DIFF)
+                       or self.colour[-1].t > c.t + PAIR_WAIT_S)
+            if not settled:
+                return None
+            self.colour.popleft()
+            pairs = associate(np.array([c.t] + [x.t for x in self.colour]), np.array([d.t for d in self.depth]),
+                              MAX_TIME_DIFF)
+            j = next((j for i, j in pairs if i == 0), None)
+            if j is not None:
+                for _ in range(j):  # older depth: nearer to no colour frame still to come
+                    self.depth.popleft()
+                return c, self.depth.popleft()
+            self.unpaired += 1
+            while self.depth and self.depth[0].t < c.t - MAX_TIME_DIFF:
+                self.depth.popleft()
+        return None
