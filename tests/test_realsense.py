@@ -228,6 +228,23 @@ def test_a_recording_without_depth_is_refused_by_name(tmp_path, shots):
         cam.start()
 
 
+def test_a_recording_without_extrinsics_is_refused_and_its_streams_stopped(tmp_path, shots):
+    bag = tmp_path / "no-extrinsics.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n")
+    sdk = FakeSDK(shots, [[0], [1]])
+    profile = sdk.profile
+
+    def without_extrinsics(kind):
+        def missing(other):
+            raise RuntimeError("Requested extrinsics are not available!")
+        return SimpleNamespace(**{**vars(profile(kind)), "get_extrinsics_to": missing})
+    sdk.profile = without_extrinsics
+    with pytest.raises(DatasetError, match=r"no-extrinsics\.bag: depth cannot be registered to colour: no "
+                                           r"extrinsics between the two streams \(Requested extrinsics"):
+        RealSenseCamera(bag, sdk=sdk).start()
+    assert ("stop", "color") in sdk.log and ("stop", "depth") in sdk.log
+
+
 def test_legslam_run_realsense_stops_on_ctrl_c_and_writes_everything(tmp_path, shots, monkeypatch, capsys):
     def ctrl_c(n):
         if n == 7:  # as a user would, while the camera streams

@@ -118,7 +118,12 @@ class RealSenseCamera:
                         "images", where, ", ".join(f"{c:.4g}" for c in coeffs))
         self.width, self.height = size
         self.depth_scale = 1.0 / float(source.device.first_depth_sensor().get_depth_scale())
-        self._register = self._registration(source)
+        try:
+            self._register = self._registration(source)
+        except RuntimeError as e:
+            source.stop()
+            raise DatasetError(f"{where}: depth cannot be registered to colour: no extrinsics between the two "
+                               f"streams ({e})") from None
         self._rs, self._pipe = rs, source
         if record_to is not None:
             self._writer = FolderWriter(record_to, self.K, self.width, self.height, self.depth_scale)
