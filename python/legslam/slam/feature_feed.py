@@ -19,12 +19,20 @@ class FeatureFeed:
     grid goes to `sink(keyframe id, grid)` once there is a PCA; with no sink, no language
     features are made), `drain` at the end. `tokens(keyframe id, unit patch tokens h x w x D)`,
     when given, hears of each keyframe as it is encoded. `timings` gets "extraction" and
-    "compression" milliseconds per keyframe."""
+    "compression" milliseconds per keyframe.
+
+    `settled` (synchronous runs): `collect` hands over every keyframe submitted before it,
+    waiting for those not encoded yet, and nothing else, so that what the map and place
+    recognition get at each frame does not depend on how busy the machine is. Collected before
+    the next keyframe is submitted, a keyframe's features then come at the frame after it, as
+    they do on an idle machine (its mapping iterations take longer than its encoding)."""
 
     def __init__(self, config, sink: Optional[Callable[[int, np.ndarray], None]], timings: dict,
-                 encoder=None, tokens: Optional[Callable[[int, np.ndarray], None]] = None):
+                 encoder=None, tokens: Optional[Callable[[int, np.ndarray], None]] = None,
+                 settled: bool = False):
         c = config
         self.config, self.sink, self.timings, self.tokens = c, sink, timings, tokens
+        self.settled, self._submitted = settled, []
         if encoder is None:
             encoder = Encoder(c.encoder_model, input_size=c.encoder_size, threads=c.encoder_threads)
         dim = getattr(encoder, "dim", None)
@@ -41,9 +49,15 @@ class FeatureFeed:
 
     def submit(self, kf_id: int, rgb: np.ndarray) -> None:
         self.extractor.submit(kf_id, rgb)
+        if self.settled:
+            self._submitted.append(kf_id)
 
     def collect(self) -> None:
-        for r in self.extractor.poll():
+        if self.settled:
+            results, self._submitted = [self.extractor.get(key) for key in self._submitted], []
+        else:
+            results = self.extractor.poll()
+        for r in results:
             self._take(r)
 
     def drain(self) -> None:
