@@ -21,18 +21,18 @@ class FeatureFeed:
     when given, hears of each keyframe as it is encoded. `timings` gets "extraction" and
     "compression" milliseconds per keyframe.
 
-    `settled` (synchronous runs): `collect` hands over every keyframe submitted before it,
-    waiting for those not encoded yet, and nothing else, so that what the map and place
-    recognition get at each frame does not depend on how busy the machine is. Collected before
-    the next keyframe is submitted, a keyframe's features then come at the frame after it, as
-    they do on an idle machine (its mapping iterations take longer than its encoding)."""
+    `settled` (synchronous runs, which collect once a frame): `collect` hands over exactly the
+    keyframes submitted before the collect before it, waiting for those not encoded yet, so that
+    what the map and place recognition get at each frame does not depend on how busy the machine
+    is. A keyframe's features then come at the frame after it, as they do on an idle machine
+    (its mapping iterations take longer than its encoding)."""
 
     def __init__(self, config, sink: Optional[Callable[[int, np.ndarray], None]], timings: dict,
                  encoder=None, tokens: Optional[Callable[[int, np.ndarray], None]] = None,
                  settled: bool = False):
         c = config
         self.config, self.sink, self.timings, self.tokens = c, sink, timings, tokens
-        self.settled, self._submitted = settled, []
+        self.settled, self._due, self._fresh = settled, [], []  # settled: keys by when submitted
         if encoder is None:
             encoder = Encoder(c.encoder_model, input_size=c.encoder_size, threads=c.encoder_threads)
         dim = getattr(encoder, "dim", None)
@@ -50,11 +50,14 @@ class FeatureFeed:
     def submit(self, kf_id: int, rgb: np.ndarray) -> None:
         self.extractor.submit(kf_id, rgb)
         if self.settled:
-            self._submitted.append(kf_id)
+            self._fresh.append(kf_id)
 
-    def collect(self) -> None:
+    def collect(self, everything: bool = False) -> None:
+        """Hands over what is ready (settled: what is due; `everything`: all submitted)."""
         if self.settled:
-            results, self._submitted = [self.extractor.get(key) for key in self._submitted], []
+            keys = self._due + self._fresh if everything else self._due
+            self._due, self._fresh = ([], []) if everything else (self._fresh, [])
+            results = [self.extractor.get(key) for key in keys]
         else:
             results = self.extractor.poll()
         for r in results:
@@ -64,7 +67,7 @@ class FeatureFeed:
         """Waits for every submitted keyframe and hands over its grid (fitting the PCA on
         what there is, if it was still waiting for more keyframes)."""
         self.extractor.close()
-        self.collect()
+        self.collect(everything=True)
         if self._waiting and self.pca is None and self.sink is not None:
             self._fit()
         self._flush()

@@ -261,8 +261,6 @@ class SLAM:
         keyframe = self.keyframes.wants(
             i, tracked.pose, tracked.coverage, self._last_keyframe, self._mapping.empty,
             coverage_counts=self._mapping.keeps_up())
-        if self._features is not None:  # before this frame's keyframe: see FeatureFeed.settled
-            self._features.collect()
         if keyframe:
             kf_id = self._mapping.add_keyframe(rgb.astype(np.float32) / 255.0, depth, self.K,
                                                tracked.pose)
@@ -271,6 +269,8 @@ class SLAM:
             self._keyframe_made(kf_id, self._last_keyframe)
             if self._features is not None:
                 self._features.submit(kf_id, rgb)
+        if self._features is not None:
+            self._features.collect()
         self._check_map_full(i)
         self._last_tracked = View(tracked.pose, small.rgb, small.depth)
         if self.surface is not None:
