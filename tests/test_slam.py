@@ -932,3 +932,24 @@ def test_a_synchronous_run_does_not_depend_on_how_long_encoding_takes(scene):
     assert map_a.means.shape == map_b.means.shape
     np.testing.assert_array_equal(map_a.means, map_b.means)
     np.testing.assert_array_equal(map_a.features, map_b.features)
+
+
+def test_a_settled_feed_hands_a_keyframe_over_at_the_next_collect_and_the_rest_at_the_end():
+    from legslam.slam.feature_feed import FeatureFeed
+
+    got = []
+    feed = FeatureFeed(SLAMConfig(feature_dim=2, pca_keyframes=1), lambda kf, grid: got.append(kf),
+                       {"extraction": [], "compression": []}, PatchColours(), settled=True)
+    rgb = np.full((48, 64, 3), 90, np.uint8)
+    feed.submit(0, rgb)
+    time.sleep(0.2)  # encoded by now, and still not the frame's to take
+    feed.collect()
+    assert got == []
+    feed.collect()
+    assert got == [0]
+    feed.submit(1, rgb)
+    feed.collect()
+    assert got == [0]
+    feed.submit(2, rgb)
+    feed.drain()  # keyframe 1 due, keyframe 2 just made: both
+    assert got == [0, 1, 2]
