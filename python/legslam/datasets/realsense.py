@@ -16,8 +16,9 @@ the camera has delivered, and the frames that came while SLAM worked on the one 
 dropped (counted from the camera's frame numbers). Played back, every frame of the recording is
 taken: the playback is not real time, each sensor hands its frames to legslam and the playback
 waits while they wait to be taken, and colour and depth are paired by nearest timestamp as
-legslam's bag reader pairs them. (The SDK's syncer, fed the same way, dropped colour frames
-when the machine was busy.) Each frame taken is written to `record_to` as a plain folder
+legslam's bag reader pairs them. (The sensors start while the playback is paused: started one
+after the other while it played, the second lost its first frames, more of them on a busy
+machine.) Each frame taken is written to `record_to` as a plain folder
 dataset (lossless PNGs, camera.json, timestamps.txt), so that the run can be evaluated, and
 run again offline.
 """
