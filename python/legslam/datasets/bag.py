@@ -41,7 +41,7 @@ import numpy as np
 from ._io import decode_image, decode_rgb, quat_to_pose
 from .base import DatasetError, DatasetNotFoundError, Sequence, as_K
 from .registration import register_depth
-from .tum import associate
+from .tum import MAX_TIME_DIFF, associate
 from .undistort import undistortion
 
 log = logging.getLogger("legslam")
@@ -59,7 +59,6 @@ KNOWN_TOPICS = {
 TRANSPORTS = ("/compressed", "/compressedDepth")
 BAG_FILES = (".bag", ".db3", ".mcap")  # ROS1; a ROS2 storage file read without its metadata.yaml
 MILLIMETRES = 1000.0  # raw units per metre of 16-bit depth
-MAX_TIME_DIFF = 0.02
 # compressed_depth_image_transport's header before the PNG: format (int32), two float32
 # quantisation parameters (for 32FC1: depth = a / (value - b)).
 COMPRESSED_DEPTH_HEADER = 12

@@ -18,9 +18,8 @@ taken: the playback is not real time, each sensor hands its frames to legslam an
 waits while they wait to be taken, and colour and depth are paired by nearest timestamp as
 legslam's bag reader pairs them. (The sensors start while the playback is paused: started one
 after the other while it played, the second lost its first frames, more of them on a busy
-machine.) Each frame taken is written to `record_to` as a plain folder
-dataset (lossless PNGs, camera.json, timestamps.txt), so that the run can be evaluated, and
-run again offline.
+machine.) Each frame taken is written to `record_to` as a plain folder dataset (lossless PNGs,
+camera.json, timestamps.txt), so that the run can be evaluated, and run again offline.
 """
 
 from __future__ import annotations
@@ -37,7 +36,7 @@ import numpy as np
 from .base import DatasetError, Frame, make_K
 from .folder import FolderSequence, FolderWriter
 from .registration import register_depth
-from .tum import associate
+from .tum import MAX_TIME_DIFF, associate
 
 log = logging.getLogger("legslam")
 
@@ -47,8 +46,6 @@ TIMEOUT_MS = 5000
 DRAIN_MS = 250
 # Frames a played-back recording hands over before its playback waits for them to be taken.
 PLAYBACK_QUEUE = 8
-# Colour and depth further apart than this are not a pair (seconds; the bag reader's too).
-MAX_TIME_DIFF = 0.02
 # A colour frame whose depth has not come by the time colour this much newer has is unpaired.
 PAIR_WAIT_S = 1.0
 

@@ -51,6 +51,10 @@ def read_file_list(path: Path) -> tuple:
     return np.array(stamps), names
 
 
+# Colour and depth further apart than this are not a pair (seconds; TUM's associate.py default).
+MAX_TIME_DIFF = 0.02
+
+
 def associate(a: np.ndarray, b: np.ndarray, max_diff: float) -> list:
     """Pairs (i, j) of a[i] and b[j] closest in time, each used once, |a[i]-b[j]| <= max_diff,
     found greedily by smallest difference as TUM's associate.py does; sorted by i."""
@@ -90,7 +94,7 @@ def camera_for(path: Path) -> tuple:
 class TUMSequence(Sequence):
     format = "tum"
 
-    def __init__(self, path, max_time_diff: float = 0.02, **kw):
+    def __init__(self, path, max_time_diff: float = MAX_TIME_DIFF, **kw):
         super().__init__(path, **kw)
         p = self.path
         self.name = p.name
