@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from test_viewer import ColourEncoder
 
 from legslam.cli import main
 from legslam.cli.progress import Progress
@@ -898,11 +899,9 @@ def test_frames_without_depth_are_counted_and_an_empty_map_is_said(scene, tmp_pa
     assert "| every_5[depth_l1_cm] | n/a |" in capsys.readouterr().out
 
 
-class PatchColours:
-    """A stand-in encoder: 12-d features of an 8x6 patch grid from colour alone, each call
-    taking `delays[k]` seconds (as a busy machine makes encoding take longer some times)."""
-
-    dim = 12
+class PatchColours(ColourEncoder):
+    """The colour stand-in encoder, each call taking `delays[k]` seconds (as a busy machine
+    makes encoding take longer some times)."""
 
     def __init__(self, delays=()):
         self.delays, self.calls = list(delays), 0
@@ -910,8 +909,7 @@ class PatchColours:
     def encode(self, rgb):
         time.sleep(self.delays[self.calls % len(self.delays)] if self.delays else 0.0)
         self.calls += 1
-        small = cv2.resize(rgb, (8, 6), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
-        return np.concatenate([small, small ** 2, 1 - small, np.sqrt(small)], axis=-1)
+        return super().encode(rgb)
 
 
 def test_a_synchronous_run_does_not_depend_on_how_long_encoding_takes(scene):
