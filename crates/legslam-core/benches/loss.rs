@@ -1,5 +1,6 @@
-//! Loss benchmarks: SSIM value and gradient at 640x480x3 and 320x240x3, and the mapper's full
-//! combined loss (colour L1 + SSIM, depth, K = 64 features) at 320x240, on 1 and 2 threads.
+//! Loss benchmarks: SSIM value and gradient at 640x480x3 and 320x240x3 (on a CPU with AVX2 also
+//! with the baseline loops, "/base"), and the mapper's full combined loss (colour L1 + SSIM,
+//! depth, K = 64 features) at 320x240, on 1 and 2 threads.
 //!
 //! cargo bench -p legslam-core --bench loss
 
@@ -26,8 +27,17 @@ fn pool(threads: usize) -> rayon::ThreadPool {
         .unwrap()
 }
 
-/// "<width>x<height>/t<threads>"
-const SSIM_CASES: [&str; 4] = ["640x480/t1", "640x480/t2", "320x240/t1", "320x240/t2"];
+/// "<width>x<height>/t<threads>[/base]"
+const SSIM_CASES: [&str; 8] = [
+    "640x480/t1",
+    "640x480/t1/base",
+    "640x480/t2",
+    "640x480/t2/base",
+    "320x240/t1",
+    "320x240/t1/base",
+    "320x240/t2",
+    "320x240/t2/base",
+];
 
 fn main() {
     divan::main();
@@ -35,13 +45,15 @@ fn main() {
 
 #[divan::bench(args = SSIM_CASES, sample_count = 20, sample_size = 1)]
 fn ssim_value_and_grad(bencher: divan::Bencher, case: &str) {
-    let (size, t) = case.split_once('/').unwrap();
+    let mut parts = case.split('/');
+    let (size, t) = (parts.next().unwrap(), parts.next().unwrap());
+    let base = parts.next() == Some("base");
     let (w, h) = size.split_once('x').unwrap();
     let (w, h): (usize, usize) = (w.parse().unwrap(), h.parse().unwrap());
     let pool = pool(t[1..].parse().unwrap());
     let (x, y) = (noise(w * h * 3, 1), noise(w * h * 3, 2));
     let mut grad = vec![0.0; x.len()];
-    let mut ssim = Ssim::new();
+    let mut ssim = Ssim::with_avx2(!base);
     bencher
         .bench_local(|| pool.install(|| ssim.value_and_grad(&x, &y, w, h, 3, &mut grad).unwrap()));
 }

@@ -220,3 +220,30 @@ fn bad_sizes_are_errors() {
         .unwrap_err()
         .contains("non-empty"));
 }
+
+/// The AVX2 build of the per-row loops gives the baseline's bits, value and gradient, on sizes
+/// that leave vector tails of many lengths.
+#[test]
+fn the_avx2_loops_give_the_baseline_bits() {
+    if !legslam_core::raster::avx2_available() {
+        eprintln!("no AVX2 on this CPU: nothing to compare");
+        return;
+    }
+    let mut rng = Rng::new(7);
+    let (mut fast, mut plain) = (Ssim::with_avx2(true), Ssim::with_avx2(false));
+    for (w, h, c) in [
+        (1, 1, 1),
+        (5, 3, 3),
+        (13, 11, 1),
+        (37, 23, 3),
+        (160, 120, 3),
+    ] {
+        let (x, y) = pair(&mut rng, w * h * c);
+        let (mut ga, mut gb) = (vec![0.0; x.len()], vec![0.0; x.len()]);
+        let va = fast.value_and_grad(&x, &y, w, h, c, &mut ga).unwrap();
+        let vb = plain.value_and_grad(&x, &y, w, h, c, &mut gb).unwrap();
+        assert_eq!(va.to_bits(), vb.to_bits(), "{w}x{h}x{c}: value");
+        let bits = |g: &[Real]| g.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&ga), bits(&gb), "{w}x{h}x{c}: gradient");
+    }
+}

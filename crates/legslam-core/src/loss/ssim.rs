@@ -33,18 +33,40 @@ fn kernel() -> [Real; RADIUS + 1] {
 /// Reusable SSIM workspace, grown on demand: per image row, five lines with zero margins
 /// (inputs of the horizontal filter), five horizontal and five vertical results; and a zero
 /// line standing in for rows beyond the image.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct Ssim {
     padded: Vec<Real>,
     horizontal: Vec<Real>,
     vertical: Vec<Real>,
     zeros: Vec<Real>,
     shape: (usize, usize, usize),
+    /// The per-row loops compiled for AVX2 (eight values an instruction instead of the
+    /// baseline's four): the same operations in the same order, so the same bits.
+    avx2: bool,
+}
+
+impl Default for Ssim {
+    fn default() -> Self {
+        Self::with_avx2(crate::raster::avx2_available())
+    }
 }
 
 impl Ssim {
     pub fn new() -> Self {
         Self::default()
+    }
+
+    /// With `avx2` false, the baseline loops even where the CPU has AVX2 (the reference the
+    /// tests and the loss bench compare the fast path with); true is ignored where it has not.
+    pub fn with_avx2(avx2: bool) -> Self {
+        Ssim {
+            padded: Vec::new(),
+            horizontal: Vec::new(),
+            vertical: Vec::new(),
+            zeros: Vec::new(),
+            shape: (0, 0, 0),
+            avx2: avx2 && crate::raster::avx2_available(),
+        }
     }
 
     /// Mean SSIM of `x` against `y`, both row-major channel-last `width x height x channels`.
@@ -110,6 +132,7 @@ impl Ssim {
         self.zeros.resize(row, 0.0);
         let k = kernel();
         let inv_n = 1.0 / n as Real;
+        let avx2 = self.avx2;
 
         // Maps x, y, xx, yy, xy into the padded lines, then horizontal filters.
         self.padded
@@ -132,7 +155,7 @@ impl Ssim {
                     pxy[j] = a * b;
                 }
                 for (pl, hl) in p.chunks_exact(line).zip(h.chunks_exact_mut(row)) {
-                    filter_line(&k, pl, hl, channels);
+                    filter_line(avx2, &k, pl, hl, channels);
                 }
             });
 
@@ -146,40 +169,26 @@ impl Ssim {
             5 * line,
             |r, v, p| {
                 for (m, out) in v.chunks_exact_mut(row).enumerate() {
-                    filter_column(&k, horizontal, 5 * row, m * row, zeros, height, r, out);
+                    let map = (&horizontal[..], 5 * row, m * row);
+                    filter_column(avx2, &k, map, zeros, height, r, out);
                 }
                 let mut maps = v.chunks_exact_mut(row);
                 let mut next = || maps.next().unwrap_or_default();
                 let (mx, my, exx, eyy, exy) = (next(), next(), next(), next(), next());
-                // Equal, known lengths let the loop below drop its bounds checks and vectorise.
-                let (mx, my, exx) = (&mx[..row], &my[..row], &exx[..row]);
-                let (eyy, exy) = (&eyy[..row], &mut exy[..row]);
                 let mut lines = p.chunks_exact_mut(line).map(|l| &mut l[margin..][..row]);
                 let mut next = || lines.next().unwrap_or_default();
                 let (d_mx, d_exx, d_exy) = (next(), next(), next());
-                let (d_mx, d_exx, d_exy) = (&mut d_mx[..row], &mut d_exx[..row], &mut d_exy[..row]);
-                for j in 0..row {
-                    let (ux, uy) = (mx[j], my[j]);
-                    let sxx = exx[j] - ux * ux;
-                    let syy = eyy[j] - uy * uy;
-                    let sxy = exy[j] - ux * uy;
-                    let a1 = 2.0 * ux * uy + C1;
-                    let a2 = 2.0 * sxy + C2;
-                    let b1 = ux * ux + uy * uy + C1;
-                    let b2 = sxx + syy + C2;
-                    let inv = 1.0 / (b1 * b2);
-                    let s = a1 * a2 * inv;
-                    // E[xy] is used up: keep the SSIM map in its place for the sum below.
-                    exy[j] = s;
-                    // Derivatives even for the value alone: a branch here would stop vectorisation.
-                    // dS/dA1 = A2 inv, dS/dA2 = A1 inv, dS/dB1 = -S/B1 = -S B2 inv,
-                    // dS/dB2 = -S/B2 = -S B1 inv (no further divisions).
-                    let d_a1 = a2 * inv;
-                    let d_a2 = a1 * inv;
-                    d_mx[j] = inv_n * (2.0 * uy * (d_a1 - d_a2) + 2.0 * ux * s * (b1 - b2) * inv);
-                    d_exx[j] = inv_n * (-s * b1 * inv);
-                    d_exy[j] = inv_n * (2.0 * d_a2);
-                }
+                let stats = Stats {
+                    mx,
+                    my,
+                    exx,
+                    eyy,
+                    exy,
+                    d_mx,
+                    d_exx,
+                    d_exy,
+                };
+                stats.run(avx2, inv_n);
                 lane_sum(exy)
             },
         );
@@ -192,7 +201,7 @@ impl Ssim {
             .zip(self.horizontal.par_chunks_mut(5 * row))
             .for_each(|(p, h)| {
                 for (pl, hl) in p.chunks_exact(line).zip(h.chunks_exact_mut(row)).take(3) {
-                    filter_line(&k, pl, hl, channels);
+                    filter_line(avx2, &k, pl, hl, channels);
                 }
             });
         let horizontal = &self.horizontal;
@@ -202,19 +211,30 @@ impl Ssim {
             .enumerate()
             .for_each(|(r, (v, g))| {
                 for (m, out) in v.chunks_exact_mut(row).take(3).enumerate() {
-                    filter_column(&k, horizontal, 5 * row, m * row, zeros, height, r, out);
+                    let map = (&horizontal[..], 5 * row, m * row);
+                    filter_column(avx2, &k, map, zeros, height, r, out);
                 }
                 let (xs, ys) = (&x[r * row..][..row], &y[r * row..][..row]);
                 let (dm, rest) = v.split_at(row);
-                let (dxx, rest) = rest.split_at(row);
-                let dxy = &rest[..row];
-                let g = &mut g[..row];
-                for j in 0..row {
-                    emit.put(&mut g[j], dm[j] + 2.0 * xs[j] * dxx[j] + ys[j] * dxy[j]);
-                }
+                let (dxx, dxy) = rest.split_at(row);
+                chain(avx2, emit, [dm, dxx, &dxy[..row], xs, ys], &mut g[..row]);
             });
         Ok(total / n as f64)
     }
+}
+
+/// Calls `$plain($args)`, or `$fast($args)`, the same body compiled for AVX2, where `$avx2`
+/// (`Ssim::with_avx2` keeps it false on a CPU without AVX2).
+macro_rules! dispatch {
+    ($avx2:expr, $fast:ident, $plain:path, ($($arg:expr),*)) => {{
+        #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+        if $avx2 {
+            // SAFETY: `avx2` holds only where the CPU has AVX2.
+            return unsafe { $fast($($arg),*) };
+        }
+        let _ = $avx2;
+        $plain($($arg),*)
+    }};
 }
 
 /// `out[j] = k0 c[j] + sum_d k_d (before_d[j] + after_d[j])`: the symmetric window applied to
@@ -235,20 +255,24 @@ fn window_sum(k: &[Real; RADIUS + 1], taps: [&[Real]; 2 * RADIUS + 1], out: &mut
 
 /// Horizontal filter of one image row: `padded` holds the row's values with `RADIUS` zero
 /// pixels on each side, pixels `stride` values apart; `out` gets the filtered row.
-fn filter_line(k: &[Real; RADIUS + 1], padded: &[Real], out: &mut [Real], stride: usize) {
+fn filter_line(
+    avx2: bool,
+    k: &[Real; RADIUS + 1],
+    padded: &[Real],
+    out: &mut [Real],
+    stride: usize,
+) {
     let n = out.len();
     let taps = std::array::from_fn(|o| &padded[o * stride..][..n]);
-    window_sum(k, taps, out);
+    dispatch!(avx2, window_sum_avx2, window_sum, (k, taps, out))
 }
 
 /// Vertical filter for image row `r` of the map starting `offset` values into each row of
-/// `buf` (rows `row_stride` apart); rows beyond the image read as `zeros`.
-#[allow(clippy::too_many_arguments)]
+/// `buf` (`(buf, row_stride, offset)`); rows beyond the image read as `zeros`.
 fn filter_column(
+    avx2: bool,
     k: &[Real; RADIUS + 1],
-    buf: &[Real],
-    row_stride: usize,
-    offset: usize,
+    (buf, row_stride, offset): (&[Real], usize, usize),
     zeros: &[Real],
     height: usize,
     r: usize,
@@ -259,5 +283,108 @@ fn filter_column(
         Some(i) if i < height => &buf[i * row_stride + offset..][..n],
         _ => &zeros[..n],
     });
-    window_sum(k, taps, out);
+    dispatch!(avx2, window_sum_avx2, window_sum, (k, taps, out))
+}
+
+/// [`window_sum`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+#[target_feature(enable = "avx2")]
+unsafe fn window_sum_avx2(
+    k: &[Real; RADIUS + 1],
+    taps: [&[Real]; 2 * RADIUS + 1],
+    out: &mut [Real],
+) {
+    window_sum(k, taps, out)
+}
+
+/// One row of the filtered maps (means, second moments) in, the SSIM map (over `exy`, used up)
+/// and its derivatives with respect to the three maps that depend on x out.
+struct Stats<'a> {
+    mx: &'a [Real],
+    my: &'a [Real],
+    exx: &'a [Real],
+    eyy: &'a [Real],
+    exy: &'a mut [Real],
+    d_mx: &'a mut [Real],
+    d_exx: &'a mut [Real],
+    d_exy: &'a mut [Real],
+}
+
+impl Stats<'_> {
+    fn run(self, avx2: bool, inv_n: Real) {
+        dispatch!(avx2, stats_avx2, Stats::body, (self, inv_n))
+    }
+
+    #[inline(always)]
+    fn body(self, inv_n: Real) {
+        let n = self.exy.len();
+        // Equal, known lengths let the loop drop its bounds checks and vectorise.
+        let (mx, my, exx, eyy) = (&self.mx[..n], &self.my[..n], &self.exx[..n], &self.eyy[..n]);
+        let (d_mx, d_exx, d_exy) = (
+            &mut self.d_mx[..n],
+            &mut self.d_exx[..n],
+            &mut self.d_exy[..n],
+        );
+        let exy = self.exy;
+        for j in 0..n {
+            let (ux, uy) = (mx[j], my[j]);
+            let sxx = exx[j] - ux * ux;
+            let syy = eyy[j] - uy * uy;
+            let sxy = exy[j] - ux * uy;
+            let a1 = 2.0 * ux * uy + C1;
+            let a2 = 2.0 * sxy + C2;
+            let b1 = ux * ux + uy * uy + C1;
+            let b2 = sxx + syy + C2;
+            let inv = 1.0 / (b1 * b2);
+            let s = a1 * a2 * inv;
+            // E[xy] is used up: keep the SSIM map in its place for the sum.
+            exy[j] = s;
+            // Derivatives even for the value alone: a branch here would stop vectorisation.
+            // dS/dA1 = A2 inv, dS/dA2 = A1 inv, dS/dB1 = -S/B1 = -S B2 inv,
+            // dS/dB2 = -S/B2 = -S B1 inv (no further divisions).
+            let d_a1 = a2 * inv;
+            let d_a2 = a1 * inv;
+            d_mx[j] = inv_n * (2.0 * uy * (d_a1 - d_a2) + 2.0 * ux * s * (b1 - b2) * inv);
+            d_exx[j] = inv_n * (-s * b1 * inv);
+            d_exy[j] = inv_n * (2.0 * d_a2);
+        }
+    }
+}
+
+/// [`Stats::body`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+#[target_feature(enable = "avx2")]
+unsafe fn stats_avx2(stats: Stats, inv_n: Real) {
+    stats.body(inv_n)
+}
+
+/// The chain rule back to x for one row: `g = dS/dmu_x + 2x dS/dE[x^2] + y dS/dE[xy]` from
+/// the filtered derivatives and the row's `x`, `y` (`[dm, dxx, dxy, x, y]`), emitted into `g`.
+fn chain(avx2: bool, emit: Emit, maps: [&[Real]; 5], g: &mut [Real]) {
+    dispatch!(avx2, chain_avx2, chain_body, (emit, maps, g))
+}
+
+#[inline(always)]
+fn chain_body(emit: Emit, [dm, dxx, dxy, xs, ys]: [&[Real]; 5], g: &mut [Real]) {
+    let n = g.len();
+    let (dm, dxx, dxy, xs, ys) = (&dm[..n], &dxx[..n], &dxy[..n], &xs[..n], &ys[..n]);
+    for j in 0..n {
+        emit.put(&mut g[j], dm[j] + 2.0 * xs[j] * dxx[j] + ys[j] * dxy[j]);
+    }
+}
+
+/// [`chain_body`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+#[target_feature(enable = "avx2")]
+unsafe fn chain_avx2(emit: Emit, maps: [&[Real]; 5], g: &mut [Real]) {
+    chain_body(emit, maps, g)
 }
