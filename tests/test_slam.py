@@ -951,3 +951,24 @@ def test_a_settled_feed_hands_a_keyframe_over_at_the_next_collect_and_the_rest_a
     feed.submit(2, rgb)
     feed.drain()  # keyframe 1 due, keyframe 2 just made: both
     assert got == [0, 1, 2]
+
+
+def test_real_time_encodes_every_nth_keyframe_and_makes_places_of_those(scene):
+    """In real time only the first keyframe and every `realtime_feature_every`-th after it go
+    to the encoder (for features and places); synchronous runs encode every one."""
+    frames = list(open_dataset(scene))
+    for mapping_thread, every in [(True, 1), (True, 2), (True, 3), (False, 2)]:
+        encoder = PatchColours()
+        cfg = SLAMConfig(feature_dim=4, pca_keyframes=1, final_iters=2, final_time=0.0,
+                         keyframe_max_gap=3, realtime_keyframe_min_gap=3,
+                         mapping_thread=mapping_thread, realtime_feature_every=every)
+        slam = SLAM(cfg, frames[0].K, 160, 120, encoder=encoder)
+        for f in frames:
+            slam.step(f.rgb, f.depth)
+        slam.finish()
+        n = len(slam.keyframe_frames)
+        assert n >= 6, slam.keyframe_frames
+        encoded = list(range(0, n, every if mapping_thread else 1))
+        assert encoder.calls == len(encoded), (mapping_thread, every, n)
+        assert sorted(slam.places.places) == encoded, (mapping_thread, every)
+        assert not slam._unplaced  # no keyframe left waiting for tokens that never come

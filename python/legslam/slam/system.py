@@ -266,8 +266,9 @@ class SLAM:
                                                tracked.pose)
             self._last_keyframe = KeyframeView(tracked.pose, small.rgb, small.depth, frame=i)
             self.keyframe_frames.append(i)
-            self._keyframe_made(kf_id, self._last_keyframe)
-            if self._features is not None:
+            encoded = self._features is not None and self._encodes(len(self.keyframe_frames) - 1)
+            self._keyframe_made(kf_id, self._last_keyframe, encoded)
+            if encoded:
                 self._features.submit(kf_id, rgb)
         if self._features is not None:
             self._features.collect()
@@ -289,10 +290,16 @@ class SLAM:
                         "pruning frees room; for a larger scene raise it (each 100k Gaussians take "
                         "about 200 MB and lengthen every mapping iteration)", i, cap)
 
-    def _keyframe_made(self, kf_id: int, view: KeyframeView) -> None:
+    def _encodes(self, n: int) -> bool:
+        """Whether the `n`-th keyframe (from 0) is encoded: every one synchronously, every
+        `realtime_feature_every`-th in real time."""
+        c = self.config
+        return not c.mapping_thread or n % c.realtime_feature_every == 0
+
+    def _keyframe_made(self, kf_id: int, view: KeyframeView, encoded: bool) -> None:
         """A new keyframe: a node of the pose graph with edges to the keyframes that see the same
-        surfaces, and a place once its tokens come."""
-        if self.places is not None:
+        surfaces, and a place once its tokens come (if it is `encoded`)."""
+        if self.places is not None and encoded:
             self._unplaced[kf_id] = view
         if self.loops is not None:
             self.loops.add_keyframe(view.frame, view.pose, self._tracked_after)
