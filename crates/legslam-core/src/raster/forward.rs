@@ -232,7 +232,7 @@ fn composite_layer(
     keep: bool,
 ) {
     let (w, h, grid) = (layer.width, layer.height, layer.grid);
-    layer.bins = bin(&grid, &layer.rects, &layer.splats);
+    bin(&grid, &layer.rects, &layer.splats, &mut layer.bins);
     layer.pixel_end.resize(w * h, 0);
     layer.pixel_t.resize(w * h, 0.0);
     // Rows are only ever added: a training loop alternates pyramid levels, and a row dropped

@@ -1,7 +1,5 @@
 //! Binning of projected Gaussians into screen tiles, each tile's list sorted front to back.
 
-use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
-
 use rayon::prelude::*;
 
 use super::forward::Splat;
@@ -67,6 +65,9 @@ fn for_each_tile(grid: &Grid, r: &Rect, mut f: impl FnMut(usize)) {
 pub(crate) struct Bins {
     pub tile_start: Vec<u32>,
     pub pair_gauss: Vec<u32>,
+    /// The sort keys, kept between calls (a training loop bins twice an iteration, and fresh
+    /// buffers of megabytes cost their page faults every time).
+    keys: Vec<u64>,
 }
 
 impl Bins {
@@ -77,43 +78,68 @@ impl Bins {
     }
 }
 
-/// Bins Gaussians by tile and sorts each tile by depth, ties by index. The keys are unique,
-/// so the result does not depend on the order the parallel fill happens to run in.
-pub(crate) fn bin(grid: &Grid, rects: &[Rect], splats: &[Splat]) -> Bins {
+/// Gaussians a binning task takes at least (enough to amortise a histogram of every tile),
+/// and how many tasks at most (each holds a count and a part of every tile).
+const BIN_CHUNK: usize = 4096;
+const BIN_TASKS: usize = 64;
+
+/// Bins Gaussians by tile into `bins` and sorts each tile by depth, ties by index. The keys are
+/// unique, so the result does not depend on the order the parallel fill happens to run in.
+///
+/// Each task counts its own Gaussians per tile and fills its own part of every tile's range,
+/// so that no two threads contend for a counter (with shared atomic counters and fresh
+/// buffers, a call took 2.1-2.5 ms on the mapper bench's map, against 1.6-1.9 ms).
+pub(crate) fn bin(grid: &Grid, rects: &[Rect], splats: &[Splat], bins: &mut Bins) {
     let n_tiles = grid.len();
-    let counts: Vec<AtomicU32> = (0..n_tiles).map(|_| AtomicU32::new(0)).collect();
-    rects.par_iter().with_min_len(4096).for_each(|r| {
-        for_each_tile(grid, r, |t| {
-            counts[t].fetch_add(1, Ordering::Relaxed);
+    let chunk = BIN_CHUNK.max(rects.len().div_ceil(BIN_TASKS));
+    let counts: Vec<Vec<u32>> = rects
+        .par_chunks(chunk)
+        .map(|chunk| {
+            let mut c = vec![0u32; n_tiles];
+            for r in chunk {
+                for_each_tile(grid, r, |t| c[t] += 1);
+            }
+            c
         })
-    });
-    let mut tile_start = vec![0u32; n_tiles + 1];
+        .collect();
+    let tile_start = &mut bins.tile_start;
+    tile_start.clear();
+    tile_start.resize(n_tiles + 1, 0);
     for t in 0..n_tiles {
-        tile_start[t + 1] = tile_start[t] + counts[t].load(Ordering::Relaxed);
+        tile_start[t + 1] = tile_start[t] + counts.iter().map(|c| c[t]).sum::<u32>();
     }
     let total = tile_start[n_tiles] as usize;
-    // Key: depth's f32 bit pattern (monotonic for positive floats) above the index.
-    let cursor: Vec<AtomicU32> = tile_start[..n_tiles]
-        .iter()
-        .map(|&s| AtomicU32::new(s))
+    let keys = &mut bins.keys;
+    keys.resize(total, 0);
+    // Every tile's range cut into the tasks' parts, in task order: [task][tile].
+    let mut parts: Vec<Vec<&mut [u64]>> = (0..counts.len())
+        .map(|_| Vec::with_capacity(n_tiles))
         .collect();
-    let slots: Vec<AtomicU64> = (0..total).map(|_| AtomicU64::new(0)).collect();
+    let mut rest = keys.as_mut_slice();
+    for t in 0..n_tiles {
+        for (part, c) in parts.iter_mut().zip(&counts) {
+            let (head, tail) = rest.split_at_mut(c[t] as usize);
+            part.push(head);
+            rest = tail;
+        }
+    }
     rects
-        .par_iter()
+        .par_chunks(chunk)
+        .zip(parts)
         .enumerate()
-        .with_min_len(4096)
-        .for_each(|(i, r)| {
-            if rect_area(r) == 0 {
-                return;
+        .for_each(|(c, (task, mut part))| {
+            let mut filled = vec![0usize; n_tiles];
+            for (j, r) in task.iter().enumerate() {
+                let i = c * chunk + j;
+                // Depth's f32 bit pattern (monotonic for positive floats) above the index.
+                #[allow(clippy::unnecessary_cast)] // Real may be f64
+                let key = ((splats[i].depth as f32).to_bits() as u64) << 32 | i as u64;
+                for_each_tile(grid, r, |t| {
+                    part[t][filled[t]] = key;
+                    filled[t] += 1;
+                })
             }
-            #[allow(clippy::unnecessary_cast)] // Real may be f64
-            let key = ((splats[i].depth as f32).to_bits() as u64) << 32 | i as u64;
-            for_each_tile(grid, r, |t| {
-                let c = cursor[t].fetch_add(1, Ordering::Relaxed);
-                slots[c as usize].store(key, Ordering::Relaxed);
-            })
         });
-    let mut keys: Vec<u64> = slots.into_iter().map(AtomicU64::into_inner).collect();
     let mut slices = Vec::with_capacity(n_tiles);
     let mut rest = keys.as_mut_slice();
     for t in 0..n_tiles {
@@ -122,9 +148,79 @@ pub(crate) fn bin(grid: &Grid, rects: &[Rect], splats: &[Splat]) -> Bins {
         rest = tail;
     }
     slices.into_par_iter().for_each(|s| s.sort_unstable());
-    let pair_gauss = keys.par_iter().map(|k| *k as u32).collect();
-    Bins {
-        tile_start,
-        pair_gauss,
+    bins.pair_gauss.resize(total, 0);
+    bins.pair_gauss
+        .par_iter_mut()
+        .zip(keys.par_iter())
+        .for_each(|(g, k)| *g = *k as u32);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    /// Each tile's list: the Gaussians whose rect holds it, by depth, ties by index.
+    fn reference(grid: &Grid, rects: &[Rect], splats: &[Splat]) -> Vec<Vec<u32>> {
+        (0..grid.len())
+            .map(|t| {
+                let (tx, ty) = ((t % grid.tiles_x) as u32, (t / grid.tiles_x) as u32);
+                let mut list: Vec<u32> = (0..rects.len() as u32)
+                    .filter(|&i| {
+                        let r = rects[i as usize];
+                        (r[0]..r[2]).contains(&tx) && (r[1]..r[3]).contains(&ty)
+                    })
+                    .collect();
+                #[allow(clippy::unnecessary_cast)] // Real may be f64
+                list.sort_by_key(|&i| ((splats[i as usize].depth as f32).to_bits(), i));
+                list
+            })
+            .collect()
+    }
+
+    /// Binning matches the plain reference over several tasks' worth of random rects (empty
+    /// ones, ones spanning many tiles, tied depths), three times into the same buffers, the
+    /// second time with fewer pairs.
+    #[test]
+    fn bins_match_the_plain_reference() {
+        let grid = Grid {
+            tiles_x: 7,
+            tiles_y: 5,
+        };
+        let mut rng = Rng::new(3);
+        let mut bins = Bins::default();
+        // Four tasks; two; and more Gaussians than the most tasks take at the least.
+        let many = BIN_TASKS * BIN_CHUNK + 4097;
+        for (n, max_span) in [(3 * BIN_CHUNK + 17, 7), (BIN_CHUNK + 5, 2), (many, 1)] {
+            let rects: Vec<Rect> = (0..n)
+                .map(|_| {
+                    if rng.below(10) == 0 {
+                        return [0; 4];
+                    }
+                    let x0 = rng.below(grid.tiles_x) as u32;
+                    let y0 = rng.below(grid.tiles_y) as u32;
+                    let x1 = (x0 + 1 + rng.below(max_span) as u32).min(grid.tiles_x as u32);
+                    let y1 = (y0 + 1 + rng.below(max_span) as u32).min(grid.tiles_y as u32);
+                    [x0, y0, x1, y1]
+                })
+                .collect();
+            let splats: Vec<Splat> = (0..n)
+                .map(|_| Splat {
+                    // 50 depths for thousands of Gaussians: many ties.
+                    depth: (1 + rng.below(50)) as Real * 0.1,
+                    ..Default::default()
+                })
+                .collect();
+            bin(&grid, &rects, &splats, &mut bins);
+            let want = reference(&grid, &rects, &splats);
+            assert_eq!(bins.tile_start.len(), grid.len() + 1);
+            assert_eq!(
+                bins.pair_gauss.len(),
+                want.iter().map(Vec::len).sum::<usize>()
+            );
+            for (t, w) in want.iter().enumerate() {
+                assert_eq!(bins.list(t), &w[..], "tile {t} of {n} Gaussians");
+            }
+        }
     }
 }
