@@ -94,9 +94,9 @@ pub(crate) fn bin(grid: &Grid, rects: &[Rect], splats: &[Splat], bins: &mut Bins
     let chunk = BIN_CHUNK.max(rects.len().div_ceil(BIN_TASKS));
     let counts: Vec<Vec<u32>> = rects
         .par_chunks(chunk)
-        .map(|chunk| {
+        .map(|task| {
             let mut c = vec![0u32; n_tiles];
-            for r in chunk {
+            for r in task {
                 for_each_tile(grid, r, |t| c[t] += 1);
             }
             c
@@ -179,8 +179,8 @@ mod tests {
     }
 
     /// Binning matches the plain reference over several tasks' worth of random rects (empty
-    /// ones, ones spanning many tiles, tied depths), three times into the same buffers, the
-    /// second time with fewer pairs.
+    /// ones, ones spanning many tiles, tied depths), three times into the same buffers (the
+    /// second time with fewer pairs).
     #[test]
     fn bins_match_the_plain_reference() {
         let grid = Grid {
@@ -189,7 +189,8 @@ mod tests {
         };
         let mut rng = Rng::new(3);
         let mut bins = Bins::default();
-        // Four tasks; two; and more Gaussians than the most tasks take at the least.
+        // Four tasks; two; and more Gaussians than BIN_TASKS tasks of BIN_CHUNK, so that each
+        // task takes more than BIN_CHUNK.
         let many = BIN_TASKS * BIN_CHUNK + 4097;
         for (n, max_span) in [(3 * BIN_CHUNK + 17, 7), (BIN_CHUNK + 5, 2), (many, 1)] {
             let rects: Vec<Rect> = (0..n)
