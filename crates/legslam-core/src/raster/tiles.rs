@@ -130,6 +130,10 @@ pub(crate) fn bin(grid: &Grid, rects: &[Rect], splats: &[Splat], bins: &mut Bins
         .for_each(|(c, (task, mut part))| {
             let mut filled = vec![0usize; n_tiles];
             for (j, r) in task.iter().enumerate() {
+                // A culled Gaussian's splat is stale and has no tile: not worth its cache line.
+                if rect_area(r) == 0 {
+                    continue;
+                }
                 let i = c * chunk + j;
                 // Depth's f32 bit pattern (monotonic for positive floats) above the index.
                 #[allow(clippy::unnecessary_cast)] // Real may be f64
