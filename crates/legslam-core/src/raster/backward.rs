@@ -1,6 +1,7 @@
 //! Backward pass: per tile, walk each pixel's list front to back again, turning
 //! d(loss)/d(image) into per-(tile, Gaussian) gradients of the screen-space quantities; then,
-//! per Gaussian, sum its tiles and run the projection backward.
+//! per Gaussian, sum its tiles and run the projection backward (eight Gaussians at a time,
+//! [`super::project_backward`]).
 //!
 //! For a pixel value X = sum_i x_i alpha_i T_i, d X / d alpha_i = x_i T_i - R_i / (1 - alpha_i),
 //! where R_i = sum_{j > i} x_j alpha_j T_j is what lies behind Gaussian i (the final value
@@ -18,7 +19,8 @@ use super::lanes::Avx2;
 use super::lanes::Neon;
 use super::lanes::{Lanes, Portable, Simd, LANES};
 use super::math::{V2, V3};
-use super::project::{backward_one, conic_to_cov_grad, geometry, ParamGrads, Pinhole, ScreenGrads};
+use super::project::View;
+use super::project_backward::{backward_task, conic_to_cov_grad, BlockGrads, ScreenGrads};
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
 use crate::optim::rows_in;
@@ -196,12 +198,15 @@ pub fn backward_into(
         .zip(split_chunks(&mut out.contribution, CHUNK, nch))
         .enumerate()
         .collect();
-    let pin = Pinhole::new(cam, cfg);
+    let view = View::new(g, cam, &opts);
     let pose_parts: Vec<[Real; 6]> = chunks
         .into_par_iter()
         .map(|(c, (((((((gm, gs), gq), go), gsh), gfeat), gm2), gw))| {
             let first = c * CHUNK;
-            let mut pose = [0.0; 6];
+            let len = gw.len();
+            // The chunk's screen-space gradients, and which of its Gaussians are on screen.
+            let mut screen = vec![ScreenGrads::default(); len];
+            let mut on = vec![false; len];
             let mine = rows_in(&rows, first, CHUNK);
             for (at, &i) in mine.iter().enumerate() {
                 // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
@@ -251,37 +256,17 @@ pub fn backward_into(
                     let s2 = scale * scale;
                     sg.cov += V3::new(gc[0][0], gc[0][1], gc[1][1]) / s2;
                 }
-                let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
-                    // Not reached (the render projected it from the same inputs), but its rows
-                    // must be written all the same.
-                    for (v, w) in [(&mut *gm, 3), (&mut *gs, 3), (&mut *gq, 4), (&mut *gsh, nc)] {
-                        v[li * w..(li + 1) * w].fill(0.0);
-                    }
-                    go[li] = 0.0;
-                    continue;
-                };
-                let part = backward_one(
-                    g,
-                    i,
-                    cam,
-                    &pin,
-                    &geo,
-                    opts.sh_degree,
-                    opts.color,
-                    &sg,
-                    ParamGrads {
-                        mean: &mut gm[3 * li..3 * li + 3],
-                        log_scale: &mut gs[3 * li..3 * li + 3],
-                        quat: &mut gq[4 * li..4 * li + 4],
-                        opacity_logit: &mut go[li],
-                        sh: &mut gsh[nc * li..nc * (li + 1)],
-                    },
-                );
-                for (p, v) in pose.iter_mut().zip(part) {
-                    *p += v;
-                }
+                screen[li] = sg;
+                on[li] = true;
             }
-            pose
+            let out = BlockGrads {
+                mean: gm,
+                log_scale: gs,
+                quat: gq,
+                opacity_logit: go,
+                sh: gsh,
+            };
+            backward_task(opts.simd, &view, first, &screen, &on, out)
         })
         .collect();
     for part in pose_parts {

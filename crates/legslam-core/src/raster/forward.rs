@@ -10,9 +10,9 @@ use super::lanes::Avx2;
 #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
 use super::lanes::Neon;
 use super::lanes::{Portable, Simd};
-use super::math::{ceil_in, floor_end_in, sigmoid, V2, V3};
-use super::project::{coarser, color_raw, cutoff_level, extent, extent_bound, geometry, Pinhole};
-use super::tiles::{bin, rect, rect_area, Bins, Grid, Rect};
+use super::math::{V2, V3};
+use super::project;
+use super::tiles::{bin, Bins, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions, Rendered, TILE};
 use crate::Real;
 
@@ -53,14 +53,6 @@ impl Splat {
 fn clip(lo: u32, hi: u32, start: usize, end: usize) -> std::ops::Range<usize> {
     let first = (lo as usize).max(start);
     first..(hi as usize).min(end).max(first)
-}
-
-/// The integer coordinates in [c - e, c + e], clipped to [0, size), as [first, end).
-#[inline]
-fn pixel_span(c: Real, e: Real, size: usize) -> [u32; 2] {
-    let first = ceil_in(c - e, size) as u32;
-    let end = floor_end_in(c + e, size) as u32;
-    [first, end.max(first)]
 }
 
 /// One compositing layer of a render: its size, splats, tile lists and what each pixel did.
@@ -169,7 +161,9 @@ pub fn render_into(
     } else {
         st.coarse.clear();
     }
-    project_all(g, cam, opts, coarse.then_some(scale), st, &mut out.radii);
+    let coarse_scale = coarse.then_some(scale);
+    let (main, low) = (&mut st.main, &mut st.coarse);
+    project::project(g, cam, opts, simd, coarse_scale, main, low, &mut out.radii);
     st.options = RenderOptions { simd, ..*opts };
     let main_k = if coarse { 0 } else { k };
     let outputs = |v: &mut Vec<Real>, on: bool, len: usize| {
@@ -294,125 +288,6 @@ fn composite_layer(
             }
         },
     );
-}
-
-/// Projects every Gaussian into the main layer's splats and rects (culled ones get an empty
-/// rect) and, with `coarse = Some(scale)`, into the coarse layer's as well; their main-layer
-/// screen radii into `radii`.
-fn project_all(
-    g: &Gaussians,
-    cam: &Camera,
-    opts: &RenderOptions,
-    coarse: Option<usize>,
-    st: &mut State,
-    radii: &mut Vec<Real>,
-) {
-    let cfg = &opts.config;
-    let pin = Pinhole::new(cam, cfg);
-    let cam_pos = cam.position();
-    let (main, low) = (&mut st.main, &mut st.coarse);
-    let (grid, low_grid) = (main.grid, low.grid);
-    let (size, low_size) = ((main.width, main.height), (low.width, low.height));
-    // The cheap bound must contain the coarse layer's extents too, whose dilation is `scale`^2
-    // times larger in main-layer pixels.
-    let bound_cfg = RasterConfig {
-        dilation: cfg.dilation * coarse.map_or(1, |s| s * s) as Real,
-        ..*cfg
-    };
-    radii.resize(g.len(), 0.0);
-    let splat_at = |xy: V2, conic: V3, ext: V2, (w, h): (usize, usize), opacity, level| Splat {
-        xy,
-        conic,
-        opacity,
-        depth: 0.0,
-        color: V3::ZERO,
-        pixels: {
-            let ([x0, x1], [y0, y1]) = (pixel_span(xy.x, ext.x, w), pixel_span(xy.y, ext.y, h));
-            [x0, y0, x1, y1]
-        },
-        sigma_max: level,
-    };
-    let project_one = |i: usize,
-                       (splat, rect, radius): (&mut Splat, &mut Rect, &mut Real),
-                       low_out: Option<(&mut Splat, &mut Rect)>| {
-        *rect = [0; 4];
-        *radius = 0.0;
-        let low_out = low_out.map(|(s, r)| {
-            *r = [0; 4];
-            (s, r)
-        });
-        let opacity = sigmoid(g.opacity_logits[i]);
-        // Once a Gaussian: the bound, both extents and the splats' sigma_max use it.
-        let level = cutoff_level(opacity, cfg);
-        // Most of a large map lies outside any one view: rule those out before the full
-        // projection.
-        match extent_bound(g, i, cam, &pin, level, &bound_cfg) {
-            Some((xy, e)) if rect_area(&rect_of(&grid, xy, e)) > 0 => {}
-            _ => return,
-        }
-        let Some(geo) = geometry(g, i, cam, &pin, cfg) else {
-            return;
-        };
-        let Some(ext) = extent(geo.cov2d, level) else {
-            return;
-        };
-        let r = rect_of(&grid, geo.xy, ext);
-        let low = coarse.and_then(|s| {
-            let (xy, conic, cov2d) = coarser(&geo, s as Real, cfg)?;
-            let ext = extent(cov2d, level)?;
-            Some((xy, conic, ext, rect_of(&low_grid, xy, ext)))
-        });
-        let low_area = low.map_or(0, |l| rect_area(&l.3));
-        if rect_area(&r) == 0 && low_area == 0 {
-            return;
-        }
-        *splat = Splat {
-            depth: geo.p_cam.z,
-            color: if opts.color {
-                color_raw(g, i, opts.sh_degree, cam_pos).max(V3::ZERO)
-            } else {
-                V3::ZERO
-            },
-            ..splat_at(geo.xy, geo.conic, ext, size, opacity, level)
-        };
-        *rect = r;
-        *radius = if rect_area(&r) > 0 {
-            ext.x.max(ext.y)
-        } else {
-            0.0
-        };
-        if let (Some((xy, conic, ext, lr)), Some((ls, lrect))) = (low, low_out) {
-            *ls = Splat {
-                depth: geo.p_cam.z,
-                ..splat_at(xy, conic, ext, low_size, opacity, level)
-            };
-            *lrect = lr;
-        }
-    };
-    let main_rows = main
-        .splats
-        .par_iter_mut()
-        .zip(main.rects.par_iter_mut())
-        .zip(radii.par_iter_mut())
-        .map(|((s, r), rad)| (s, r, rad));
-    if coarse.is_some() {
-        let low_rows = low.splats.par_iter_mut().zip(low.rects.par_iter_mut());
-        main_rows
-            .zip(low_rows)
-            .enumerate()
-            .with_min_len(1024)
-            .for_each(|(i, (m, l))| project_one(i, m, Some(l)));
-    } else {
-        main_rows
-            .enumerate()
-            .with_min_len(1024)
-            .for_each(|(i, m)| project_one(i, m, None));
-    }
-}
-
-#[inline]
-fn rect_of(grid: &Grid, xy: V2, ext: V2) -> Rect {
-    rect(grid, xy.x, xy.y, ext.x, ext.y)
 }
 
 /// One tile through the implementation `simd` chose.

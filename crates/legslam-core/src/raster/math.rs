@@ -41,28 +41,6 @@ pub fn quat_to_mat(w: Real, x: Real, y: Real, z: Real) -> M3 {
     )
 }
 
-/// Gradient of a loss with respect to (w, x, y, z), given its gradient `g` with respect to
-/// the entries of `quat_to_mat(w, x, y, z)`.
-#[inline]
-pub fn quat_to_mat_vjp(w: Real, x: Real, y: Real, z: Real, g: &M3) -> [Real; 4] {
-    let g = |i, j| at(g, i, j);
-    [
-        2.0 * (-z * g(0, 1) + y * g(0, 2) + z * g(1, 0) - x * g(1, 2) - y * g(2, 0) + x * g(2, 1)),
-        2.0 * (y * g(0, 1) + z * g(0, 2) + y * g(1, 0) - 2.0 * x * g(1, 1) - w * g(1, 2)
-            + z * g(2, 0)
-            + w * g(2, 1)
-            - 2.0 * x * g(2, 2)),
-        2.0 * (-2.0 * y * g(0, 0) + x * g(0, 1) + w * g(0, 2) + x * g(1, 0) + z * g(1, 2)
-            - w * g(2, 0)
-            + z * g(2, 1)
-            - 2.0 * y * g(2, 2)),
-        2.0 * (-2.0 * z * g(0, 0) - w * g(0, 1) + x * g(0, 2) + w * g(1, 0) - 2.0 * z * g(1, 1)
-            + y * g(1, 2)
-            + x * g(2, 0)
-            + y * g(2, 1)),
-    ]
-}
-
 #[inline]
 pub fn sigmoid(x: Real) -> Real {
     1.0 / (1.0 + (-x).exp())

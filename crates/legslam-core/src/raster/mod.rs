@@ -16,6 +16,7 @@ mod forward;
 mod lanes;
 pub(crate) mod math;
 mod project;
+mod project_backward;
 pub mod sh;
 mod tiles;
 

@@ -1,11 +1,34 @@
-//! Per-Gaussian projection (EWA splatting) and its backward pass.
+//! The per-Gaussian projection (EWA splatting), eight Gaussians at a time: lane l of a block
+//! holds Gaussian `first + l` (structure of arrays, transposed from the map's rows), so that
+//! the opacity's sigmoid and cut-off logarithm, the scales' exponentials, the 3x3 products of
+//! the EWA covariance, the square roots of the extents and the SH colour run eight-wide through
+//! [`Lanes`], where a Gaussian at a time spent most of its time in scalar library calls. The
+//! integer work (tile rects, pixel spans) and the splats' writing stay per Gaussian.
+//!
+//! A block takes the cheap bound first and stops there when all its Gaussians miss the view (a
+//! map's Gaussians come in runs from the keyframe that grew them, so runs off screen are
+//! common), then the full projection. The backward pass ([`super::project_backward`]) calls the
+//! same functions for the forward quantities it needs.
 
-// `!(x > 0.0)` is deliberate: it culls NaN as well.
-#![allow(clippy::neg_cmp_op_on_partial_ord)]
+use rayon::prelude::*;
 
-use super::math::{at, quat_to_mat, quat_to_mat_vjp, sigmoid, M3, V2, V3};
-use super::{sh, Camera, Gaussians, RasterConfig};
+use super::forward::{Layer, Splat};
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+use super::lanes::Avx2;
+#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+use super::lanes::Neon;
+use super::lanes::{Lanes, Portable, Simd, LANES};
+use super::math::{at, ceil_in, floor_end_in, V2, V3};
+use super::sh;
+use super::tiles::{rect, rect_area, Grid, Rect};
+use super::{Camera, Gaussians, RasterConfig, RenderOptions};
 use crate::Real;
+
+/// Gaussians per parallel task.
+const CHUNK: usize = 1024;
+
+/// The widest row a block reads: 16 SH coefficients of 3 channels.
+const WIDEST_ROW: usize = 48;
 
 /// Pinhole parameters in the engine's scalar type, with the Jacobian's clamping limits.
 #[derive(Clone, Copy)]
@@ -14,8 +37,8 @@ pub(crate) struct Pinhole {
     pub fy: Real,
     pub cx: Real,
     pub cy: Real,
-    lim_x: (Real, Real),
-    lim_y: (Real, Real),
+    pub lim_x: (Real, Real),
+    pub lim_y: (Real, Real),
 }
 
 impl Pinhole {
@@ -36,381 +59,652 @@ impl Pinhole {
     }
 }
 
-/// Intermediate values of one Gaussian's projection, shared by forward and backward.
-pub(crate) struct Geometry {
-    pub p_cam: V3,
-    /// Unnormalised quaternion norm and normalised quaternion (w, x, y, z).
-    q_norm: Real,
-    q: [Real; 4],
-    rot: M3,
-    scale: V3,
-    cov_cam: M3,
-    /// Rows of the 2x3 projection Jacobian, and whether x/z, y/z were clamped.
-    j0: V3,
-    j1: V3,
-    clamped: (bool, bool),
-    /// 2D covariance (with dilation) entries (xx, xy, yy) and its inverse, the conic (a, b, c).
-    pub cov2d: V3,
-    pub conic: V3,
-    pub xy: V2,
+/// The integer coordinates in [c - e, c + e], clipped to [0, size), as [first, end).
+#[inline]
+fn pixel_span(c: Real, e: Real, size: usize) -> [u32; 2] {
+    let first = ceil_in(c - e, size) as u32;
+    let end = floor_end_in(c + e, size) as u32;
+    [first, end.max(first)]
 }
 
-/// Gaussian `i`'s centre in camera coordinates; `None` outside the near and far planes.
+/// A splat's pixels [x0, y0, x1, y1]: the image's pixels within its extent `ext` about `xy`.
 #[inline]
-fn camera_point(g: &Gaussians, i: usize, cam: &Camera, cfg: &RasterConfig) -> Option<V3> {
-    let m = &g.means[3 * i..3 * i + 3];
-    let p = cam.rotation * V3::new(m[0], m[1], m[2]) + cam.translation;
-    (p.z > cfg.near && p.z < cfg.far).then_some(p)
+fn pixels(xy: V2, ext: V2, (w, h): (usize, usize)) -> [u32; 4] {
+    let ([x0, x1], [y0, y1]) = (pixel_span(xy.x, ext.x, w), pixel_span(xy.y, ext.y, h));
+    [x0, y0, x1, y1]
 }
 
-/// Projects Gaussian `i`; `None` when it is behind the near plane, beyond the far plane or
-/// degenerate. Image-extent culling is the caller's.
-#[inline]
-pub(crate) fn geometry(
+/// One layer's grid and image size.
+#[derive(Clone, Copy)]
+struct Target {
+    grid: Grid,
+    size: (usize, usize),
+}
+
+/// What a block of either pass reads besides the Gaussians' rows: the camera and the options.
+pub(crate) struct View<'a> {
+    pub g: &'a Gaussians<'a>,
+    pub pin: Pinhole,
+    /// World-to-camera rotation (rows) and translation, and the camera centre.
+    pub rotation: [[Real; 3]; 3],
+    pub translation: [Real; 3],
+    pub centre: V3,
+    pub cfg: RasterConfig,
+    pub sh_degree: usize,
+    pub color: bool,
+}
+
+impl<'a> View<'a> {
+    pub fn new(g: &'a Gaussians<'a>, cam: &Camera, opts: &RenderOptions) -> Self {
+        let rot = cam.rotation;
+        View {
+            g,
+            pin: Pinhole::new(cam, &opts.config),
+            rotation: std::array::from_fn(|i| std::array::from_fn(|j| at(&rot, i, j))),
+            translation: cam.translation.to_array(),
+            centre: cam.position(),
+            cfg: opts.config,
+            sh_degree: opts.sh_degree,
+            color: opts.color,
+        }
+    }
+}
+
+/// The forward pass's view, and where its splats go.
+struct Projector<'a> {
+    view: View<'a>,
+    /// The cheap bound's dilation: large enough for the coarse layer's extents, whose
+    /// dilation is `scale`^2 times larger in main-layer pixels.
+    bound_dilation: Real,
+    main: Target,
+    /// The features' layer and its scale, when it has one.
+    coarse: Option<(Target, Real)>,
+}
+
+/// A task's part of the outputs: Gaussians `first..first + splats.len()`.
+struct Outputs<'a> {
+    splats: &'a mut [Splat],
+    rects: &'a mut [Rect],
+    radii: &'a mut [Real],
+    low: Option<(&'a mut [Splat], &'a mut [Rect])>,
+}
+
+/// Projects every Gaussian into the main layer's splats and rects (culled ones get an empty
+/// rect and keep a stale splat) and, with `coarse = Some(scale)`, into the coarse layer's as
+/// well; their main-layer screen radii into `radii`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn project(
     g: &Gaussians,
-    i: usize,
     cam: &Camera,
-    pin: &Pinhole,
-    cfg: &RasterConfig,
-) -> Option<Geometry> {
-    let p_cam = camera_point(g, i, cam, cfg)?;
-    let z = p_cam.z;
-    let qr = &g.quats[4 * i..4 * i + 4];
-    let q_norm = (qr[0] * qr[0] + qr[1] * qr[1] + qr[2] * qr[2] + qr[3] * qr[3]).sqrt();
-    if !(q_norm > 0.0) {
-        return None;
+    opts: &RenderOptions,
+    simd: Simd,
+    coarse: Option<usize>,
+    main: &mut Layer,
+    low: &mut Layer,
+    radii: &mut Vec<Real>,
+) {
+    let target = |l: &Layer| Target {
+        grid: l.grid,
+        size: (l.width, l.height),
+    };
+    let p = Projector {
+        view: View::new(g, cam, opts),
+        bound_dilation: opts.config.dilation * coarse.map_or(1, |s| s * s) as Real,
+        main: target(main),
+        coarse: coarse.map(|s| (target(low), s as Real)),
+    };
+    radii.resize(g.len(), 0.0);
+    let tasks = main
+        .splats
+        .par_chunks_mut(CHUNK)
+        .zip(main.rects.par_chunks_mut(CHUNK))
+        .zip(radii.par_chunks_mut(CHUNK))
+        .enumerate();
+    if coarse.is_some() {
+        let low_tasks = low
+            .splats
+            .par_chunks_mut(CHUNK)
+            .zip(low.rects.par_chunks_mut(CHUNK));
+        tasks
+            .zip(low_tasks)
+            .for_each(|((c, ((splats, rects), radii)), (ls, lr))| {
+                let out = Outputs {
+                    splats,
+                    rects,
+                    radii,
+                    low: Some((ls, lr)),
+                };
+                project_task(simd, &p, c * CHUNK, out);
+            });
+    } else {
+        tasks.for_each(|(c, ((splats, rects), radii))| {
+            let out = Outputs {
+                splats,
+                rects,
+                radii,
+                low: None,
+            };
+            project_task(simd, &p, c * CHUNK, out);
+        });
     }
-    let q = [
-        qr[0] / q_norm,
-        qr[1] / q_norm,
-        qr[2] / q_norm,
-        qr[3] / q_norm,
-    ];
-    let rot = quat_to_mat(q[0], q[1], q[2], q[3]);
-    let ls = &g.log_scales[3 * i..3 * i + 3];
-    let scale = V3::new(ls[0].exp(), ls[1].exp(), ls[2].exp());
-    let mm = cam.rotation * rot * M3::from_diagonal(scale);
-    let cov_cam = mm * mm.transpose();
+}
 
-    let (tx, ty) = (p_cam.x / z, p_cam.y / z);
-    let sx = tx.clamp(pin.lim_x.0, pin.lim_x.1);
-    let sy = ty.clamp(pin.lim_y.0, pin.lim_y.1);
-    let j0 = V3::new(pin.fx / z, 0.0, -pin.fx * sx / z);
-    let j1 = V3::new(0.0, pin.fy / z, -pin.fy * sy / z);
-    let (cj0, cj1) = (cov_cam * j0, cov_cam * j1);
-    let cov2d = V3::new(
-        j0.dot(cj0) + cfg.dilation,
-        j0.dot(cj1),
-        j1.dot(cj1) + cfg.dilation,
-    );
-    let det = cov2d.x * cov2d.z - cov2d.y * cov2d.y;
-    if !(det > 1e-12) {
-        return None;
+/// One task's Gaussians, a block of eight at a time, through the implementation `simd` chose.
+fn project_task(simd: Simd, p: &Projector, first: usize, out: Outputs) {
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    if simd == Simd::Avx2 {
+        // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
+        return unsafe { project_task_avx2(p, first, out) };
     }
-    let conic = V3::new(cov2d.z / det, -cov2d.y / det, cov2d.x / det);
-    let xy = V2::new(pin.fx * tx + pin.cx, pin.fy * ty + pin.cy);
-    Some(Geometry {
+    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+    if simd == Simd::Neon {
+        return blocks::<Neon>(p, first, out);
+    }
+    let _ = simd;
+    blocks::<Portable>(p, first, out)
+}
+
+/// [`blocks`] compiled with AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+#[target_feature(enable = "avx2")]
+unsafe fn project_task_avx2(p: &Projector, first: usize, out: Outputs) {
+    blocks::<Avx2>(p, first, out)
+}
+
+#[inline(always)]
+fn blocks<L: Lanes>(p: &Projector, first: usize, mut out: Outputs) {
+    let n = out.splats.len();
+    for b in (0..n).step_by(LANES) {
+        block::<L>(p, first + b, b, (n - b).min(LANES), &mut out);
+    }
+}
+
+/// A block's lanes as an array.
+#[inline(always)]
+fn lanes<L: Lanes>(v: L) -> [Real; LANES] {
+    let mut a = [0.0; LANES];
+    v.store(&mut a);
+    a
+}
+
+/// The half extent along an axis of variance `var` of the region where alpha reaches the
+/// cut-off, sqrt(2 level var), padded a hair so that rounding never drops a pixel whose alpha
+/// reaches it.
+#[inline(always)]
+fn extent<L: Lanes>(level: L, var: L) -> L {
+    let e = L::splat(2.0).mul(level).mul(var).sqrt();
+    e.mul(L::splat(1.0001)).add(L::splat(1e-3))
+}
+
+/// A block's Gaussians, `first..first + 8` (lanes past the map's end repeat its last Gaussian,
+/// and their results are dropped).
+pub(crate) struct Rows {
+    pub first: usize,
+    pub n: usize,
+}
+
+impl Rows {
+    /// The block's first `out.len()` values of each row of `s` (rows of `stride` values), as
+    /// columns.
+    #[inline(always)]
+    fn columns<L: Lanes>(&self, s: &[Real], stride: usize, out: &mut [L]) {
+        let (first, n) = (self.first, self.n);
+        if first + LANES <= n {
+            return L::load_columns(&s[first * stride..(first + LANES) * stride], stride, out);
+        }
+        let mut rows = [0.0; LANES * WIDEST_ROW];
+        for l in 0..LANES {
+            let r = (first + l).min(n - 1);
+            rows[l * stride..(l + 1) * stride].copy_from_slice(&s[r * stride..(r + 1) * stride]);
+        }
+        L::load_columns(&rows[..LANES * stride], stride, out)
+    }
+
+    #[inline(always)]
+    fn column<L: Lanes>(&self, s: &[Real]) -> L {
+        let mut v = [L::splat(0.0)];
+        self.columns(s, 1, &mut v);
+        v[0]
+    }
+
+    #[inline(always)]
+    fn columns3<L: Lanes>(&self, s: &[Real]) -> [L; 3] {
+        let mut v = [L::splat(0.0); 3];
+        self.columns(s, 3, &mut v);
+        v
+    }
+}
+
+/// What the cheap bound and the full projection share: the opacity and its cut-off level, the
+/// centre in camera and screen coordinates.
+pub(crate) struct Centre<L: Lanes> {
+    pub opacity: L,
+    /// ln(opacity / alpha_min): where sigma exceeds it, alpha is below the cut-off.
+    pub level: L,
+    pub mean: [L; 3],
+    pub p_cam: [L; 3],
+    /// Between the near and far planes.
+    pub depth_ok: L::Mask,
+    pub log_scale: [L; 3],
+    /// x / z and y / z, and the same clamped to the widened field of view (the Jacobian's).
+    pub t: [L; 2],
+    pub clamped: [L; 2],
+    /// The projected centre in pixels.
+    pub xy: [L; 2],
+}
+
+/// `a . b` of 3-vectors.
+#[inline(always)]
+fn dot3<L: Lanes>(a: [L; 3], b: [L; 3]) -> L {
+    a[0].mul(b[0]).add(a[1].mul(b[1])).add(a[2].mul(b[2]))
+}
+
+/// A row of scalars, splatted.
+#[inline(always)]
+fn splat3<L: Lanes>(row: &[Real; 3]) -> [L; 3] {
+    [L::splat(row[0]), L::splat(row[1]), L::splat(row[2])]
+}
+
+#[inline(always)]
+pub(crate) fn centre<L: Lanes>(p: &View, rows: &Rows) -> Centre<L> {
+    let (g, cfg, pin) = (p.g, &p.cfg, &p.pin);
+    let c = L::splat;
+    let (zero, one) = (c(0.0), c(1.0));
+    let logit: L = rows.column(g.opacity_logits);
+    let opacity = one.div(one.add(zero.sub(logit).exp_wide()));
+    let level = opacity.div(c(cfg.alpha_min)).ln();
+    let mean: [L; 3] = rows.columns3(g.means);
+    let (r, t) = (&p.rotation, &p.translation);
+    let p_cam = [
+        dot3(splat3(&r[0]), mean).add(c(t[0])),
+        dot3(splat3(&r[1]), mean).add(c(t[1])),
+        dot3(splat3(&r[2]), mean).add(c(t[2])),
+    ];
+    let z = p_cam[2];
+    let (tx, ty) = (p_cam[0].div(z), p_cam[1].div(z));
+    Centre {
+        opacity,
+        level,
+        mean,
         p_cam,
+        depth_ok: L::and(z.gt(c(cfg.near)), z.lt(c(cfg.far))),
+        log_scale: rows.columns3(g.log_scales),
+        t: [tx, ty],
+        clamped: [
+            tx.max(c(pin.lim_x.0)).min(c(pin.lim_x.1)),
+            ty.max(c(pin.lim_y.0)).min(c(pin.lim_y.1)),
+        ],
+        xy: [
+            c(pin.fx).mul(tx).add(c(pin.cx)),
+            c(pin.fy).mul(ty).add(c(pin.cy)),
+        ],
+    }
+}
+
+/// Half extents (x, y) that contain the full projection's, from the centre and the largest
+/// scale alone: the Jacobian's rows have norm (f / z) sqrt(1 + s^2), and the 3D covariance's
+/// largest eigenvalue is the largest scale squared. Slack well above rounding, so that the
+/// bound never falls below the exact extent.
+#[inline(always)]
+fn bound<L: Lanes>(p: &Projector, ce: &Centre<L>) -> [L; 2] {
+    let c = L::splat;
+    let ls = &ce.log_scale;
+    let s2 = c(2.0).mul(ls[0].max(ls[1]).max(ls[2])).exp_wide();
+    let level = ce.level.max(c(0.0));
+    let z = ce.p_cam[2];
+    let dilation = c(p.bound_dilation);
+    [
+        half_bound(p.view.pin.fx, ce.clamped[0], z, s2, level, dilation),
+        half_bound(p.view.pin.fy, ce.clamped[1], z, s2, level, dilation),
+    ]
+}
+
+/// [`bound`] along one axis: focal length `f`, clamped x / z or y / z `s`, the largest variance
+/// `s2`, the cut-off `level`.
+#[inline(always)]
+fn half_bound<L: Lanes>(f: Real, s: L, z: L, s2: L, level: L, dilation: L) -> L {
+    let c = L::splat;
+    let fz = c(f).div(z);
+    let var = fz.mul(fz).mul(c(1.0).add(s.mul(s))).mul(s2).add(dilation);
+    c(2.0).mul(level).mul(var).sqrt().mul(c(1.01)).add(c(0.01))
+}
+
+/// The rest of a block's projection: the 2D covariance and its conic.
+pub(crate) struct Shape<L: Lanes> {
+    /// The quaternion is not zero, and the 2D covariance is invertible.
+    pub ok: L::Mask,
+    /// The quaternion's norm, and the unit quaternion (w, x, y, z).
+    pub q_norm: L,
+    pub q: [L; 4],
+    /// The rotation's columns (the local axes in world coordinates), and the scales.
+    pub rot_cols: [[L; 3]; 3],
+    pub scale: [L; 3],
+    /// The camera-space covariance's entries 00, 01, 02, 11, 12, 22.
+    pub cov: [L; 6],
+    /// The Jacobian's non-zero entries (j0x, j0z, j1y, j1z), and the covariance times its rows.
+    pub j: [L; 4],
+    pub cj0: [L; 3],
+    pub cj1: [L; 3],
+    /// Entries (xx, xy, yy) of the 2D covariance (with dilation) and of its inverse.
+    pub cov2d: [L; 3],
+    pub conic: [L; 3],
+}
+
+/// The conic (inverse) of the 2D covariances (xx, xy, yy), and where they are invertible.
+#[inline(always)]
+fn conic<L: Lanes>([xx, xy, yy]: [L; 3]) -> (L::Mask, [L; 3]) {
+    let det = xx.mul(yy).sub(xy.mul(xy));
+    let ok = det.gt(L::splat(1e-12));
+    (
+        ok,
+        [yy.div(det), L::splat(0.0).sub(xy).div(det), xx.div(det)],
+    )
+}
+
+/// 2 (a b + s t).
+#[inline(always)]
+fn twice_sum<L: Lanes>(a: L, b: L, s: L, t: L) -> L {
+    L::splat(2.0).mul(a.mul(b).add(s.mul(t)))
+}
+
+/// 2 (a b - s t).
+#[inline(always)]
+fn twice_difference<L: Lanes>(a: L, b: L, s: L, t: L) -> L {
+    L::splat(2.0).mul(a.mul(b).sub(s.mul(t)))
+}
+
+/// 1 - 2 (a^2 + b^2).
+#[inline(always)]
+fn diagonal<L: Lanes>(a: L, b: L) -> L {
+    L::splat(1.0).sub(L::splat(2.0).mul(a.mul(a).add(b.mul(b))))
+}
+
+/// A row of M = R_cam R S: (R_cam's row) . (R's column j) s_j.
+#[inline(always)]
+fn m_row<L: Lanes>(cam_row: &[Real; 3], rot_cols: &[[L; 3]; 3], scale: &[L; 3]) -> [L; 3] {
+    let r = splat3(cam_row);
+    [
+        dot3(r, rot_cols[0]).mul(scale[0]),
+        dot3(r, rot_cols[1]).mul(scale[1]),
+        dot3(r, rot_cols[2]).mul(scale[2]),
+    ]
+}
+
+#[inline(always)]
+pub(crate) fn shape<L: Lanes>(p: &View, rows: &Rows, ce: &Centre<L>) -> Shape<L> {
+    let (g, pin) = (p.g, &p.pin);
+    let c = L::splat;
+    let mut q = [c(0.0); 4];
+    rows.columns(g.quats, 4, &mut q);
+    let q_norm = q[0]
+        .mul(q[0])
+        .add(q[1].mul(q[1]))
+        .add(q[2].mul(q[2]))
+        .add(q[3].mul(q[3]))
+        .sqrt();
+    let [w, x, y, z] = [
+        q[0].div(q_norm),
+        q[1].div(q_norm),
+        q[2].div(q_norm),
+        q[3].div(q_norm),
+    ];
+    // The rotation's columns: column j is the local axis j in world coordinates.
+    let rot_cols = [
+        [
+            diagonal(y, z),
+            twice_sum(x, y, w, z),
+            twice_difference(x, z, w, y),
+        ],
+        [
+            twice_difference(x, y, w, z),
+            diagonal(x, z),
+            twice_sum(y, z, w, x),
+        ],
+        [
+            twice_sum(x, z, w, y),
+            twice_difference(y, z, w, x),
+            diagonal(x, y),
+        ],
+    ];
+    let ls = &ce.log_scale;
+    let scale = [ls[0].exp_wide(), ls[1].exp_wide(), ls[2].exp_wide()];
+    // M = R_cam R S, row i: (R_cam row i) . (R column j) s_j; the covariance is M M^T.
+    let r = &p.rotation;
+    let m = [
+        m_row(&r[0], &rot_cols, &scale),
+        m_row(&r[1], &rot_cols, &scale),
+        m_row(&r[2], &rot_cols, &scale),
+    ];
+    let (c00, c01, c02) = (dot3(m[0], m[0]), dot3(m[0], m[1]), dot3(m[0], m[2]));
+    let (c11, c12, c22) = (dot3(m[1], m[1]), dot3(m[1], m[2]), dot3(m[2], m[2]));
+    // The Jacobian's rows (fx / z, 0, -fx sx / z) and (0, fy / z, -fy sy / z).
+    let depth = ce.p_cam[2];
+    let (j0x, j0z) = (
+        c(pin.fx).div(depth),
+        c(-pin.fx).mul(ce.clamped[0]).div(depth),
+    );
+    let (j1y, j1z) = (
+        c(pin.fy).div(depth),
+        c(-pin.fy).mul(ce.clamped[1]).div(depth),
+    );
+    let cj0 = [
+        c00.mul(j0x).add(c02.mul(j0z)),
+        c01.mul(j0x).add(c12.mul(j0z)),
+        c02.mul(j0x).add(c22.mul(j0z)),
+    ];
+    let cj1 = [
+        c01.mul(j1y).add(c02.mul(j1z)),
+        c11.mul(j1y).add(c12.mul(j1z)),
+        c12.mul(j1y).add(c22.mul(j1z)),
+    ];
+    let dilation = c(p.cfg.dilation);
+    let cov2d = [
+        j0x.mul(cj0[0]).add(j0z.mul(cj0[2])).add(dilation),
+        j0x.mul(cj1[0]).add(j0z.mul(cj1[2])),
+        j1y.mul(cj1[1]).add(j1z.mul(cj1[2])).add(dilation),
+    ];
+    let (invertible, conic) = conic(cov2d);
+    Shape {
+        ok: L::and(c(0.0).lt(q_norm), invertible),
         q_norm,
-        q,
-        rot,
+        q: [w, x, y, z],
+        rot_cols,
         scale,
-        cov_cam,
-        j0,
-        j1,
-        clamped: (sx != tx, sy != ty),
+        cov: [c00, c01, c02, c11, c12, c22],
+        j: [j0x, j0z, j1y, j1z],
+        cj0,
+        cj1,
         cov2d,
         conic,
-        xy,
-    })
+    }
 }
 
-/// ln(opacity / alpha_min): the largest sigma (the exponent `0.5 d^T conic d`) at which a
-/// Gaussian of this opacity still reaches the alpha cut-off.
-#[inline]
-pub(crate) fn cutoff_level(opacity: Real, cfg: &RasterConfig) -> Real {
-    (opacity / cfg.alpha_min).ln()
-}
-
-/// The centre (pixels) and half extents that bound what [`geometry`] and [`extent`] would give
-/// Gaussian `i` at `level` ([`cutoff_level`]), from its centre and largest scale alone
-/// (`None` where `geometry` culls by depth): a cheap test that skips the full projection of
-/// Gaussians that cannot reach the image. The Jacobian's rows have norm (f / z) sqrt(1 + s^2),
-/// and the 3D covariance's largest eigenvalue is the largest scale squared.
-#[inline]
-pub(crate) fn extent_bound(
-    g: &Gaussians,
-    i: usize,
-    cam: &Camera,
-    pin: &Pinhole,
-    level: Real,
-    cfg: &RasterConfig,
-) -> Option<(V2, V2)> {
-    let p = camera_point(g, i, cam, cfg)?;
-    let z = p.z;
-    let ls = &g.log_scales[3 * i..3 * i + 3];
-    let s2 = (2.0 * ls[0].max(ls[1]).max(ls[2])).exp();
-    let (tx, ty) = (p.x / z, p.y / z);
-    let sx = tx.clamp(pin.lim_x.0, pin.lim_x.1);
-    let sy = ty.clamp(pin.lim_y.0, pin.lim_y.1);
-    let level = level.max(0.0);
-    // Slack well above rounding, so that the bound never falls below the exact extent.
-    let half = |f: Real, s: Real| {
-        let var = (f / z) * (f / z) * (1.0 + s * s) * s2 + cfg.dilation;
-        (2.0 * level * var).sqrt() * 1.01 + 0.01
+/// Projects Gaussians `first..first + count` (`count` <= 8) into `out`'s entries from `at`.
+#[inline(always)]
+fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &mut Outputs) {
+    let c = L::splat;
+    let v = &p.view;
+    let rows = Rows {
+        first,
+        n: v.g.len(),
     };
-    Some((
-        V2::new(pin.fx * tx + pin.cx, pin.fy * ty + pin.cy),
-        V2::new(half(pin.fx, sx), half(pin.fy, sy)),
-    ))
-}
-
-/// Half extents (x, y) in pixels of the region where a Gaussian of 2D covariance `cov2d`
-/// (xx, xy, yy) has alpha at least `alpha_min`: the bounding box of the ellipse
-/// `0.5 d^T conic d <= level` ([`cutoff_level`]).
-#[inline]
-pub(crate) fn extent(cov2d: V3, level: Real) -> Option<V2> {
-    if !(level > 0.0) {
-        return None;
-    }
-    // Padded a hair so that rounding never drops a pixel whose alpha reaches the cut-off.
-    let pad = |v: Real| v * 1.0001 + 1e-3;
-    Some(V2::new(
-        pad((2.0 * level * cov2d.x).sqrt()),
-        pad((2.0 * level * cov2d.z).sqrt()),
-    ))
-}
-
-/// The projected Gaussian `geo` in an image `s` times coarser (intrinsics scaled about pixel
-/// centres, as an image pyramid's levels are): centre `(xy + 0.5) / s - 0.5`, covariance
-/// `(cov2d - dilation) / s^2 + dilation` (the low-pass filter is one pixel of each image).
-/// Returns centre, conic and covariance; `None` where the covariance degenerates.
-#[inline]
-pub(crate) fn coarser(geo: &Geometry, s: Real, cfg: &RasterConfig) -> Option<(V2, V3, V3)> {
-    let (d, s2) = (cfg.dilation, s * s);
-    let c = geo.cov2d;
-    let cov2d = V3::new((c.x - d) / s2 + d, c.y / s2, (c.z - d) / s2 + d);
-    let det = cov2d.x * cov2d.z - cov2d.y * cov2d.y;
-    if !(det > 1e-12) {
-        return None;
-    }
-    let conic = V3::new(cov2d.z / det, -cov2d.y / det, cov2d.x / det);
-    Some(((geo.xy + 0.5) / s - 0.5, conic, cov2d))
-}
-
-/// d(loss)/d(2D covariance) as a 2x2 matrix, from d(loss)/d(conic entries a, b, c) (b counted
-/// once, as it enters sigma): G_cov = -Q G_Q Q with G_Q the symmetric-matrix gradient.
-#[inline]
-pub(crate) fn conic_to_cov_grad(conic: V3, g_conic: V3) -> [[Real; 2]; 2] {
-    let q2 = [[conic.x, conic.y], [conic.y, conic.z]];
-    let gq = [[g_conic.x, 0.5 * g_conic.y], [0.5 * g_conic.y, g_conic.z]];
-    let mut g_cov2 = [[0.0; 2]; 2];
-    for (a, row) in g_cov2.iter_mut().enumerate() {
-        for (b, v) in row.iter_mut().enumerate() {
-            let mut sum = 0.0;
-            for c in 0..2 {
-                for d in 0..2 {
-                    sum += q2[a][c] * gq[c][d] * q2[d][b];
-                }
-            }
-            *v = -sum;
+    let ce: Centre<L> = centre(v, &rows);
+    let [bx, by] = bound(p, &ce);
+    let (x, y) = (lanes(ce.xy[0]), lanes(ce.xy[1]));
+    let (bx, by) = (lanes(bx), lanes(by));
+    let depth_bits = L::bits(ce.depth_ok);
+    let mut near = 0u32;
+    for l in 0..count {
+        let o = at + l;
+        out.rects[o] = [0; 4];
+        out.radii[o] = 0.0;
+        if let Some((_, lr)) = out.low.as_mut() {
+            lr[o] = [0; 4];
+        }
+        if depth_bits >> l & 1 != 0 && rect_area(&rect(&p.main.grid, x[l], y[l], bx[l], by[l])) > 0
+        {
+            near |= 1 << l;
         }
     }
-    g_cov2
-}
-
-/// View direction from the camera centre to the Gaussian, unnormalised.
-#[inline]
-fn view_dir(g: &Gaussians, i: usize, cam_pos: V3) -> V3 {
-    let m = &g.means[3 * i..3 * i + 3];
-    V3::new(m[0], m[1], m[2]) - cam_pos
-}
-
-/// SH colour (+0.5, before clamping at 0).
-#[inline]
-pub(crate) fn color_raw(g: &Gaussians, i: usize, degree: usize, cam_pos: V3) -> V3 {
-    let n = sh::num_coeffs(degree);
-    let coeffs = &g.sh[i * g.sh_coeffs * 3..];
-    let mut b = [0.0; 16];
-    if degree > 0 {
-        sh::basis(degree, view_dir(g, i, cam_pos).normalize_or_zero(), &mut b);
-    } else {
-        b[0] = sh::basis_c0();
+    if near == 0 {
+        return;
     }
-    let mut c = V3::splat(0.5);
-    for k in 0..n {
-        c += b[k] * V3::new(coeffs[3 * k], coeffs[3 * k + 1], coeffs[3 * k + 2]);
-    }
-    c
-}
-
-/// Gradients of one Gaussian's screen-space quantities, gathered from all pixels.
-#[derive(Clone, Copy, Default)]
-pub(crate) struct ScreenGrads {
-    pub xy: V2,
-    /// With respect to the conic entries (a, b, c) as scalars.
-    pub conic: V3,
-    /// With respect to the 2D covariance as a matrix (xx, xy = yx, yy), beside what `conic`
-    /// contributes (a coarser layer's share).
-    pub cov: V3,
-    pub opacity: Real,
-    pub color: V3,
-    pub depth: Real,
-}
-
-/// Where one Gaussian's parameter gradients go.
-pub(crate) struct ParamGrads<'a> {
-    pub mean: &'a mut [Real],
-    pub log_scale: &'a mut [Real],
-    pub quat: &'a mut [Real],
-    pub opacity_logit: &'a mut Real,
-    pub sh: &'a mut [Real],
-}
-
-/// Backward of the projection of Gaussian `i`: writes its parameter gradients and returns its
-/// contribution to the pose gradient (rho, phi).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn backward_one(
-    g: &Gaussians,
-    i: usize,
-    cam: &Camera,
-    pin: &Pinhole,
-    geo: &Geometry,
-    sh_degree: usize,
-    want_color: bool,
-    sg: &ScreenGrads,
-    out: ParamGrads,
-) -> [Real; 6] {
-    let z = geo.p_cam.z;
-    let (x, y) = (geo.p_cam.x, geo.p_cam.y);
-    let w_rot = cam.rotation;
-
-    // Opacity.
-    let o = sigmoid(g.opacity_logits[i]);
-    *out.opacity_logit = sg.opacity * o * (1.0 - o);
-
-    // Camera-space position: depth and the projected centre.
-    let mut g_p = V3::new(0.0, 0.0, sg.depth);
-    g_p.x += sg.xy.x * pin.fx / z;
-    g_p.y += sg.xy.y * pin.fy / z;
-    g_p.z -= (sg.xy.x * pin.fx * x + sg.xy.y * pin.fy * y) / (z * z);
-
-    // Conic -> 2D covariance.
-    let mut g_cov2 = conic_to_cov_grad(geo.conic, sg.conic);
-    g_cov2[0][0] += sg.cov.x;
-    g_cov2[0][1] += sg.cov.y;
-    g_cov2[1][0] += sg.cov.y;
-    g_cov2[1][1] += sg.cov.z;
-
-    // 2D covariance = J cov_cam J^T: to cov_cam and to J.
-    let (j0, j1) = (geo.j0, geo.j1);
-    let outer = |a: V3, b: V3| M3::from_cols(a * b.x, a * b.y, a * b.z);
-    let g_cov_cam = g_cov2[0][0] * outer(j0, j0)
-        + g_cov2[0][1] * (outer(j0, j1) + outer(j1, j0))
-        + g_cov2[1][1] * outer(j1, j1);
-    let (cj0, cj1) = (geo.cov_cam * j0, geo.cov_cam * j1);
-    let g_j0 = 2.0 * (g_cov2[0][0] * cj0 + g_cov2[0][1] * cj1);
-    let g_j1 = 2.0 * (g_cov2[1][0] * cj0 + g_cov2[1][1] * cj1);
-
-    // J -> camera-space position. J02 = -fx sx / z with sx = clamp(x / z).
-    let sx = if geo.clamped.0 {
-        -j0.z * z / pin.fx
+    let sh: Shape<L> = shape(v, &rows, &ce);
+    let level = ce.level;
+    let [cxx, _, cyy] = sh.cov2d;
+    let (ex, ey) = (lanes(extent(level, cxx)), lanes(extent(level, cyy)));
+    let ok = near & L::bits(sh.ok) & L::bits(c(0.0).lt(level));
+    // The same Gaussian in the coarse layer: centre (xy + 0.5) / s - 0.5, covariance
+    // (cov2d - dilation) / s^2 + dilation.
+    let low = if let Some((target, s)) = p.coarse {
+        let (scale, s2, dilation) = (c(s), c(s * s), c(v.cfg.dilation));
+        let cov = [
+            cxx.sub(dilation).div(s2).add(dilation),
+            sh.cov2d[1].div(s2),
+            cyy.sub(dilation).div(s2).add(dilation),
+        ];
+        let (low_ok, low_conic) = conic(cov);
+        let half = c(0.5);
+        // Spelt out, not closures or `array::map`, which are not always inlined into the AVX2
+        // code.
+        Some((
+            target,
+            L::bits(low_ok),
+            [
+                lanes(ce.xy[0].add(half).div(scale).sub(half)),
+                lanes(ce.xy[1].add(half).div(scale).sub(half)),
+            ],
+            [
+                lanes(low_conic[0]),
+                lanes(low_conic[1]),
+                lanes(low_conic[2]),
+            ],
+            [lanes(extent(level, cov[0])), lanes(extent(level, cov[2]))],
+        ))
     } else {
-        x / z
+        None
     };
-    let sy = if geo.clamped.1 {
-        -j1.z * z / pin.fy
+    let color = if v.color {
+        let col = colour(v, &rows, &ce.mean);
+        let zero = c(0.0);
+        [
+            lanes(col.raw(0).max(zero)),
+            lanes(col.raw(1).max(zero)),
+            lanes(col.raw(2).max(zero)),
+        ]
     } else {
-        y / z
+        [[0.0; LANES]; 3]
     };
-    let (dsx_dx, dsx_dz) = if geo.clamped.0 {
-        (0.0, 0.0)
-    } else {
-        (1.0 / z, -x / (z * z))
-    };
-    let (dsy_dy, dsy_dz) = if geo.clamped.1 {
-        (0.0, 0.0)
-    } else {
-        (1.0 / z, -y / (z * z))
-    };
-    g_p.x += g_j0.z * (-pin.fx / z) * dsx_dx;
-    g_p.y += g_j1.z * (-pin.fy / z) * dsy_dy;
-    g_p.z += g_j0.x * (-pin.fx / (z * z))
-        + g_j1.y * (-pin.fy / (z * z))
-        + g_j0.z * (pin.fx * sx / (z * z) - pin.fx / z * dsx_dz)
-        + g_j1.z * (pin.fy * sy / (z * z) - pin.fy / z * dsy_dz);
-
-    // cov_cam = W cov_world W^T: to cov_world, and to the pose rotation.
-    let g_cov_w = w_rot.transpose() * g_cov_cam * w_rot;
-    let mrot = geo.cov_cam * g_cov_cam - g_cov_cam * geo.cov_cam;
-    let mut g_phi = V3::new(
-        at(&mrot, 1, 2) - at(&mrot, 2, 1),
-        at(&mrot, 2, 0) - at(&mrot, 0, 2),
-        at(&mrot, 0, 1) - at(&mrot, 1, 0),
-    );
-
-    // cov_world = M M^T, M = R S.
-    let mm = geo.rot * M3::from_diagonal(geo.scale);
-    let g_m = 2.0 * g_cov_w * mm;
-    let mut g_rot_m = M3::ZERO;
-    for j in 0..3 {
-        let gc = g_m.col(j);
-        let rc = geo.rot.col(j);
-        out.log_scale[j] = gc.dot(rc) * geo.scale[j];
-        *g_rot_m.col_mut(j) = gc * geo.scale[j];
-    }
-    let [w, qx, qy, qz] = geo.q;
-    let g_qn = quat_to_mat_vjp(w, qx, qy, qz, &g_rot_m);
-    let dot = g_qn[0] * w + g_qn[1] * qx + g_qn[2] * qy + g_qn[3] * qz;
-    for (k, v) in out.quat.iter_mut().enumerate() {
-        *v = (g_qn[k] - geo.q[k] * dot) / geo.q_norm;
-    }
-
-    // Colour: SH coefficients, and the view direction (to the mean and the camera centre).
-    let mut g_mean = V3::ZERO;
-    let mut g_rho = V3::ZERO;
-    out.sh.fill(0.0);
-    if want_color {
-        let cam_pos = cam.position();
-        let raw = color_raw(g, i, sh_degree, cam_pos);
-        let gc = V3::new(
-            if raw.x > 0.0 { sg.color.x } else { 0.0 },
-            if raw.y > 0.0 { sg.color.y } else { 0.0 },
-            if raw.z > 0.0 { sg.color.z } else { 0.0 },
-        );
-        let v = view_dir(g, i, cam_pos);
-        let vn = v.length();
-        let mut b = [0.0; 16];
-        let mut db = [V3::ZERO; 16];
-        if sh_degree > 0 && vn > 0.0 {
-            sh::basis(sh_degree, v / vn, &mut b);
-            sh::basis_grad(sh_degree, v / vn, &mut db);
+    let conic_main = [lanes(sh.conic[0]), lanes(sh.conic[1]), lanes(sh.conic[2])];
+    let (opacity, level, depth) = (lanes(ce.opacity), lanes(level), lanes(ce.p_cam[2]));
+    for l in 0..count {
+        if ok >> l & 1 == 0 {
+            continue;
+        }
+        let o = at + l;
+        let (xy, ext) = (V2::new(x[l], y[l]), V2::new(ex[l], ey[l]));
+        let main_rect = rect(&p.main.grid, xy.x, xy.y, ext.x, ext.y);
+        let low_rect = low.as_ref().and_then(|(target, bits, centre, _, e)| {
+            (bits >> l & 1 != 0)
+                .then(|| rect(&target.grid, centre[0][l], centre[1][l], e[0][l], e[1][l]))
+        });
+        if rect_area(&main_rect) == 0 && low_rect.is_none_or(|r| rect_area(&r) == 0) {
+            continue;
+        }
+        let lane3 = |v: &[[Real; LANES]; 3]| V3::new(v[0][l], v[1][l], v[2][l]);
+        out.splats[o] = Splat {
+            xy,
+            conic: lane3(&conic_main),
+            opacity: opacity[l],
+            depth: depth[l],
+            color: lane3(&color),
+            pixels: pixels(xy, ext, p.main.size),
+            sigma_max: level[l],
+        };
+        out.rects[o] = main_rect;
+        out.radii[o] = if rect_area(&main_rect) > 0 {
+            ext.x.max(ext.y)
         } else {
-            b[0] = sh::basis_c0();
-        }
-        let coeffs = &g.sh[i * g.sh_coeffs * 3..];
-        let mut g_dir = V3::ZERO;
-        for k in 0..sh::num_coeffs(sh_degree) {
-            out.sh[3 * k] = b[k] * gc.x;
-            out.sh[3 * k + 1] = b[k] * gc.y;
-            out.sh[3 * k + 2] = b[k] * gc.z;
-            let c = V3::new(coeffs[3 * k], coeffs[3 * k + 1], coeffs[3 * k + 2]);
-            g_dir += db[k] * c.dot(gc);
-        }
-        if sh_degree > 0 && vn > 0.0 {
-            let d = v / vn;
-            let g_v = (g_dir - d * d.dot(g_dir)) / vn;
-            g_mean += g_v;
-            g_rho += w_rot * g_v;
+            0.0
+        };
+        if let (Some(lr), Some((target, _, centre, conic, e)), Some((ls, lrs))) =
+            (low_rect, low.as_ref(), out.low.as_mut())
+        {
+            let (xy, ext) = (
+                V2::new(centre[0][l], centre[1][l]),
+                V2::new(e[0][l], e[1][l]),
+            );
+            ls[o] = Splat {
+                xy,
+                conic: lane3(conic),
+                opacity: opacity[l],
+                depth: depth[l],
+                color: V3::ZERO,
+                pixels: pixels(xy, ext, target.size),
+                sigma_max: level[l],
+            };
+            lrs[o] = lr;
         }
     }
+}
 
-    // p_cam = W mean + t.
-    g_mean += w_rot.transpose() * g_p;
-    out.mean.copy_from_slice(&g_mean.to_array());
-    g_rho += g_p;
-    g_phi += geo.p_cam.cross(g_p);
-    [g_rho.x, g_rho.y, g_rho.z, g_phi.x, g_phi.y, g_phi.z]
+/// The SH colour's inputs for a block: the basis at the unit view direction, the coefficients
+/// it weighs (`3 * used` of them, channel fastest), and the direction itself.
+pub(crate) struct Colour<L: Lanes> {
+    pub used: usize,
+    pub basis: [L; 16],
+    pub coeffs: [L; WIDEST_ROW],
+    /// The view direction has a length (its unit vector is `dir`, `rcp` its inverse length);
+    /// where it has none, `dir` is zero.
+    pub finite: L::Mask,
+    pub dir: [L; 3],
+    pub rcp: L,
+}
+
+impl<L: Lanes> Colour<L> {
+    /// Channel `ch` of the colour before its clamp at 0: 0.5 + sum_k basis_k coeff_k.
+    #[inline(always)]
+    pub fn raw(&self, ch: usize) -> L {
+        let mut v = L::splat(0.5);
+        for k in 0..self.used {
+            v = v.add(self.basis[k].mul(self.coeffs[3 * k + ch]));
+        }
+        v
+    }
+}
+
+#[inline(always)]
+pub(crate) fn colour<L: Lanes>(p: &View, rows: &Rows, mean: &[L; 3]) -> Colour<L> {
+    let c = L::splat;
+    let zero = c(0.0);
+    let v = [
+        mean[0].sub(c(p.centre.x)),
+        mean[1].sub(c(p.centre.y)),
+        mean[2].sub(c(p.centre.z)),
+    ];
+    let rcp = c(1.0).div(dot3(v, v).sqrt());
+    let finite = L::and(rcp.lt(c(Real::INFINITY)), zero.lt(rcp));
+    let dir = [
+        L::select(finite, v[0].mul(rcp), zero),
+        L::select(finite, v[1].mul(rcp), zero),
+        L::select(finite, v[2].mul(rcp), zero),
+    ];
+    let mut basis = [zero; 16];
+    sh::basis_lanes(p.sh_degree, dir, &mut basis);
+    let used = sh::num_coeffs(p.sh_degree);
+    let mut coeffs = [zero; WIDEST_ROW];
+    rows.columns(p.g.sh, p.g.sh_coeffs * 3, &mut coeffs[..3 * used]);
+    Colour {
+        used,
+        basis,
+        coeffs,
+        finite,
+        dir,
+        rcp,
+    }
 }
 
 #[cfg(test)]
@@ -420,10 +714,11 @@ mod tests {
     use crate::rng::Rng;
 
     /// The cheap bound contains the exact extent of every Gaussian the full projection keeps,
-    /// over random sizes, shapes, opacities, orientations and positions in and around the view
-    /// (behind the camera, grazing the near plane, far off-axis).
+    /// in the main layer and, with the bound's dilation widened for it, in coarse layers (in
+    /// main-layer pixels), over random sizes, shapes, opacities, orientations and positions in
+    /// and around the view (behind the camera, grazing the near plane, far off-axis).
     #[test]
-    fn extent_bound_contains_the_exact_extent() {
+    fn the_cheap_bound_contains_the_exact_extent() {
         let mut rng = Rng::new(7);
         let n = 20_000;
         let mut means = Vec::new();
@@ -460,28 +755,55 @@ mod tests {
             0.0, 0.0, 0.0, 1.0,
         );
         let cam = Camera::new(intr, &w2c).unwrap();
-        let cfg = RasterConfig::default();
-        let pin = Pinhole::new(&cam, &cfg);
+        let opts = RenderOptions::default();
+        let cfg = opts.config;
+        let target = Target {
+            grid: Grid::new(320, 240),
+            size: (320, 240),
+        };
         let mut kept = 0;
-        for (i, &logit) in logits.iter().enumerate() {
-            let level = cutoff_level(sigmoid(logit), &cfg);
-            let exact = geometry(&g, i, &cam, &pin, &cfg)
-                .and_then(|geo| extent(geo.cov2d, level).map(|e| (geo.xy, e)));
-            let Some((xy, e)) = exact else { continue };
-            kept += 1;
-            let (bxy, be) = extent_bound(&g, i, &cam, &pin, level, &cfg)
-                .unwrap_or_else(|| panic!("Gaussian {i}: projected, but the bound culls it"));
-            assert_eq!(bxy, xy, "Gaussian {i}: centre");
-            for (lo_b, hi_b, lo, hi) in [
-                (bxy.x - be.x, bxy.x + be.x, xy.x - e.x, xy.x + e.x),
-                (bxy.y - be.y, bxy.y + be.y, xy.y - e.y, xy.y + e.y),
-            ] {
-                assert!(
-                    lo_b <= lo && hi_b >= hi,
-                    "Gaussian {i}: bound {be} < extent {e}"
+        for scale in [1, 2, 4] {
+            let s = scale as Real;
+            let p = Projector {
+                view: View::new(&g, &cam, &opts),
+                bound_dilation: cfg.dilation * s * s,
+                main: target,
+                coarse: None,
+            };
+            for first in (0..n).step_by(LANES) {
+                let rows = Rows { first, n };
+                let ce: Centre<Portable> = centre(&p.view, &rows);
+                let sh = shape(&p.view, &rows, &ce);
+                let [bx, by] = bound(&p, &ce).map(lanes);
+                let (level, [xx, _, yy]) = (ce.level, sh.cov2d);
+                let d = Portable::splat(cfg.dilation);
+                let s2 = Portable::splat(s * s);
+                // The layer's extent, in main-layer pixels.
+                let var = |v: Portable| v.sub(d).div(s2).add(d);
+                let (ex, ey) = (
+                    lanes(extent(level, var(xx)).mul(Portable::splat(s))),
+                    lanes(extent(level, var(yy)).mul(Portable::splat(s))),
                 );
+                let ok = Portable::bits(ce.depth_ok)
+                    & Portable::bits(sh.ok)
+                    & Portable::bits(Portable::splat(0.0).lt(level));
+                for l in (0..LANES.min(n - first)).filter(|l| ok >> l & 1 != 0) {
+                    kept += 1;
+                    let i = first + l;
+                    assert!(
+                        ex[l] <= bx[l] && ey[l] <= by[l],
+                        "Gaussian {i} at scale {scale}: bound ({}, {}) < extent ({}, {})",
+                        bx[l],
+                        by[l],
+                        ex[l],
+                        ey[l]
+                    );
+                }
             }
         }
-        assert!(kept > n / 4, "only {kept} of {n} Gaussians projected");
+        assert!(
+            kept > 3 * n / 4,
+            "only {kept} of 3 x {n} Gaussians projected"
+        );
     }
 }
