@@ -16,6 +16,14 @@ fi
 # Python it has no wheel for skips those tests).
 .venv/bin/python -m pip install --quiet 'rosbags>=0.10' 'lzfse>=0.4'
 .venv/bin/python -m pip install --quiet 'pyrealsense2>=2.50' || echo "no pyrealsense2 for this Python: its tests skip"
+# The SDK's wheel links libusb, which a minimal system lacks (Debian's libusb-1.0-0).
+if ! .venv/bin/python -c 'import pyrealsense2' > /dev/null 2>&1 && command -v apt-get > /dev/null \
+    && [ "$(id -u)" = 0 ]; then
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -q libusb-1.0-0 > /dev/null 2>&1 \
+    || { apt-get update -q > /dev/null 2>&1 \
+      && DEBIAN_FRONTEND=noninteractive apt-get install -y -q libusb-1.0-0 > /dev/null 2>&1; } \
+    || echo "pyrealsense2 cannot load (libusb-1.0 missing): its tests skip"
+fi
 # The optional live viewer (`--viewer rerun`, about 100 MB of wheels with pyarrow), so that its
 # tests run too; rerun-sdk 0.41 needs Python >= 3.11 (older Pythons skip those tests).
 if .venv/bin/python -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then

@@ -51,12 +51,16 @@ PAIR_WAIT_S = 1.0
 
 
 def import_sdk():
-    """pyrealsense2, or a DatasetError saying how to install it."""
+    """pyrealsense2, or a DatasetError saying how to install it, or why it cannot load."""
     try:
         import pyrealsense2
-    except ImportError:
+    except ModuleNotFoundError:
         raise DatasetError("a RealSense camera needs Intel's SDK for Python: pip install 'legslam[realsense]' "
                            "(pyrealsense2)") from None
+    except ImportError as e:
+        # Installed, but a library it links is missing (a minimal system lacks libusb).
+        hint = " (Debian/Ubuntu: apt-get install libusb-1.0-0)" if "libusb" in str(e) else ""
+        raise DatasetError(f"Intel's SDK for Python (pyrealsense2) is installed but cannot load: {e}{hint}") from None
     return pyrealsense2
 
 
