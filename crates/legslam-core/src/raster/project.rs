@@ -28,7 +28,7 @@ use crate::Real;
 const CHUNK: usize = 1024;
 
 /// The widest row a block reads: 16 SH coefficients of 3 channels.
-const WIDEST_ROW: usize = 48;
+pub(crate) const WIDEST_ROW: usize = 48;
 
 /// Pinhole parameters in the engine's scalar type, with the Jacobian's clamping limits.
 #[derive(Clone, Copy)]
@@ -224,7 +224,7 @@ fn blocks<L: Lanes>(p: &Projector, first: usize, mut out: Outputs) {
 
 /// A block's lanes as an array.
 #[inline(always)]
-fn lanes<L: Lanes>(v: L) -> [Real; LANES] {
+pub(crate) fn lanes<L: Lanes>(v: L) -> [Real; LANES] {
     let mut a = [0.0; LANES];
     v.store(&mut a);
     a
@@ -298,7 +298,7 @@ pub(crate) struct Centre<L: Lanes> {
 
 /// `a . b` of 3-vectors.
 #[inline(always)]
-fn dot3<L: Lanes>(a: [L; 3], b: [L; 3]) -> L {
+pub(crate) fn dot3<L: Lanes>(a: [L; 3], b: [L; 3]) -> L {
     a[0].mul(b[0]).add(a[1].mul(b[1])).add(a[2].mul(b[2]))
 }
 

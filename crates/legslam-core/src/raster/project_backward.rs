@@ -9,7 +9,7 @@ use super::lanes::Avx2;
 use super::lanes::Neon;
 use super::lanes::{Lanes, Portable, Simd, LANES};
 use super::math::{V2, V3};
-use super::project::{centre, colour, shape, Rows, View};
+use super::project::{centre, colour, dot3, lanes, shape, Rows, View, WIDEST_ROW};
 use super::sh;
 use crate::Real;
 
@@ -140,19 +140,6 @@ fn load<L: Lanes>(v: [Real; LANES]) -> L {
     L::load(&v)
 }
 
-#[inline(always)]
-fn lanes<L: Lanes>(v: L) -> [Real; LANES] {
-    let mut a = [0.0; LANES];
-    v.store(&mut a);
-    a
-}
-
-/// `a . b` of 3-vectors.
-#[inline(always)]
-fn dot3<L: Lanes>(a: [L; 3], b: [L; 3]) -> L {
-    a[0].mul(b[0]).add(a[1].mul(b[1])).add(a[2].mul(b[2]))
-}
-
 /// Entry (i, j) of a symmetric 3x3 matrix stored as 00, 01, 02, 11, 12, 22.
 #[inline(always)]
 fn sym<L: Lanes>(m: &[L; 6], i: usize, j: usize) -> L {
@@ -195,15 +182,7 @@ fn congruence<L: Lanes>(w: &[[L; 3]; 3], g: &[L; 6]) -> [L; 6] {
             );
         }
     }
-    let entry = |i: usize, j: usize| (i, j);
-    let at = [
-        entry(0, 0),
-        entry(0, 1),
-        entry(0, 2),
-        entry(1, 1),
-        entry(1, 2),
-        entry(2, 2),
-    ];
+    let at = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
     let mut out = [L::splat(0.0); 6];
     for (o, (i, j)) in out.iter_mut().zip(at) {
         *o = dot3([w[0][i], w[1][i], w[2][i]], [t[0][j], t[1][j], t[2][j]]);
@@ -422,7 +401,7 @@ pub(crate) fn backward_block<L: Lanes>(
     // Colour: the SH coefficients, and the view direction (to the mean and the camera
     // centre). A channel clamped at 0 passes no gradient.
     let nc = v.g.sh_coeffs * 3;
-    let mut g_sh = [zero; 48];
+    let mut g_sh = [zero; WIDEST_ROW];
     let mut g_mean = [zero; 3];
     let mut g_rho = [zero; 3];
     if v.color {
@@ -495,7 +474,7 @@ pub(crate) fn backward_block<L: Lanes>(
         lanes(g_quat[3]),
     ];
     let g_logit = lanes(g_logit);
-    let mut g_sh_lanes = [[0.0; LANES]; 48];
+    let mut g_sh_lanes = [[0.0; LANES]; WIDEST_ROW];
     for (o, v) in g_sh_lanes.iter_mut().zip(&g_sh).take(nc) {
         *o = lanes(*v);
     }
