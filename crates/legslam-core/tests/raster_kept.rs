@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{bits, gradient_arrays, hard_scene, random_scene, render_and_backward};
+use common::{assert_same_gradients, hard_scene, random_scene, render_and_backward};
 use legslam_core::raster::{native_simd, RenderOptions, Simd};
 
 #[test]
@@ -39,11 +39,7 @@ fn kept_falloffs_give_the_gradients_of_evaluated_ones() {
                         "{what}: the images"
                     );
                     assert_eq!(gk.rows, ge.rows, "{what}: rows on screen");
-                    for ((name, a), (_, b)) in
-                        gradient_arrays(&gk).into_iter().zip(gradient_arrays(&ge))
-                    {
-                        assert_eq!(bits(a), bits(b), "{what}: {name}");
-                    }
+                    assert_same_gradients(&gk, &ge, &what);
                     assert!(
                         gk.opacity_logits.iter().any(|v| *v != 0.0),
                         "{what}: no gradient reached opacity"

@@ -7,7 +7,9 @@
 
 mod common;
 
-use common::{bits, gradient_arrays, hard_scene, random_scene, render_and_backward, Scene};
+use common::{
+    assert_same_gradients, assert_same_images, hard_scene, random_scene, render_and_backward, Scene,
+};
 use legslam_core::raster::{
     avx2_available, native_simd, neon_available, render, Gradients, RenderOptions, Rendered, Simd,
 };
@@ -43,17 +45,8 @@ fn the_vector_path_renders_and_differentiates_the_portable_bits() {
             ra.alpha.iter().any(|&a| a > 0.5),
             "scene {i} covers no pixel"
         );
-        for (name, a, p) in [
-            ("color", &ra.color, &rp.color),
-            ("depth", &ra.depth, &rp.depth),
-            ("alpha", &ra.alpha, &rp.alpha),
-            ("features", &ra.features, &rp.features),
-        ] {
-            assert_eq!(bits(a), bits(p), "scene {i}: {name}");
-        }
-        for ((name, a), (_, p)) in gradient_arrays(&ga).into_iter().zip(gradient_arrays(&gp)) {
-            assert_eq!(bits(a), bits(p), "scene {i}: {name}");
-        }
+        assert_same_images(&ra, &rp, &format!("scene {i}"));
+        assert_same_gradients(&ga, &gp, &format!("scene {i}"));
         assert!(
             ga.means.iter().any(|v| *v != 0.0),
             "scene {i} has no gradient"

@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{bits, gradient_arrays, random_scene, render_and_backward};
+use common::{assert_same_gradients, assert_same_images, random_scene, render_and_backward};
 use legslam_core::raster::{native_simd, RenderOptions, Simd};
 
 #[test]
@@ -35,17 +35,9 @@ fn any_thread_count_gives_the_same_bits() {
         );
         for threads in [2, 3] {
             let (r, g) = on(threads);
-            for (name, a, b) in [
-                ("color", &r.color, &r1.color),
-                ("depth", &r.depth, &r1.depth),
-                ("alpha", &r.alpha, &r1.alpha),
-                ("features", &r.features, &r1.features),
-            ] {
-                assert_eq!(bits(a), bits(b), "{simd:?}, {threads} threads: {name}");
-            }
-            for ((name, a), (_, b)) in gradient_arrays(&g).into_iter().zip(gradient_arrays(&g1)) {
-                assert_eq!(bits(a), bits(b), "{simd:?}, {threads} threads: {name}");
-            }
+            let what = format!("{simd:?}, {threads} threads");
+            assert_same_images(&r, &r1, &what);
+            assert_same_gradients(&g, &g1, &what);
         }
     }
 }

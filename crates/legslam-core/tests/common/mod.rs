@@ -335,6 +335,25 @@ pub fn bits(v: &[Real]) -> Vec<u64> {
     v.iter().map(|x| x.to_bits() as u64).collect()
 }
 
+/// Asserts that two renders give the same bits in every image (`what` names the case).
+pub fn assert_same_images(a: &Rendered, b: &Rendered, what: &str) {
+    for (name, x, y) in [
+        ("color", &a.color, &b.color),
+        ("depth", &a.depth, &b.depth),
+        ("alpha", &a.alpha, &b.alpha),
+        ("features", &a.features, &b.features),
+    ] {
+        assert_eq!(bits(x), bits(y), "{what}: {name}");
+    }
+}
+
+/// Asserts that two backward passes give the same bits in every gradient array.
+pub fn assert_same_gradients(a: &Gradients, b: &Gradients, what: &str) {
+    for ((name, x), (_, y)) in gradient_arrays(a).into_iter().zip(gradient_arrays(b)) {
+        assert_eq!(bits(x), bits(y), "{what}: {name}");
+    }
+}
+
 /// Every gradient array of `g` by name.
 pub fn gradient_arrays(g: &Gradients) -> [(&'static str, &[Real]); 9] {
     [
