@@ -3,9 +3,9 @@
 //! pose, with `SETUP_ITERS` mapping iterations after each (growth, densification and pruning
 //! as in a SLAM run), the SLAM's mapper options at 640x480 (training at 320x240, SH degree 3,
 //! K = 64 features on a smooth synthetic patch grid). Then single iterations (render + loss +
-//! backward + step) are timed, per phase, on 2 threads, with the portable compositing and the
-//! vector one (AVX2 or NEON) alternately, and on a second map grown the same way with pruning
-//! by contribution.
+//! backward + step) are timed, per phase, on 2 threads, with the portable compositing and each
+//! vector one the CPU has (AVX2, AVX-512 or NEON) in turn, and on a second map grown the same
+//! way with pruning by contribution.
 //!
 //! cargo bench -p legslam-core --bench mapper
 //! Environment: LEGSLAM_BENCH_K (feature channels, default 64), LEGSLAM_BENCH_SETUP_ITERS
@@ -24,7 +24,7 @@ use std::time::Instant;
 
 use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::map::{FeatureGrid, Mapper, MapperConfig};
-use legslam_core::raster::{native_simd, Simd};
+use legslam_core::raster::{vector_paths, Simd};
 use legslam_core::rng::Rng;
 use legslam_core::Real;
 
@@ -127,24 +127,24 @@ fn main() {
         );
         mapper
     };
-    // The map with the portable and the CPU's vector compositing (AVX2 or NEON: the same bits,
-    // so alternating them trains the map as either would), and one grown with pruning by
-    // contribution at 1.6 per million of the view, half a 640x480 pixel (LEGSLAM_BENCH_PRUNED=0
-    // skips it), on the vector path where the CPU has one.
-    let vector = native_simd().map(Simd::name);
+    // The map with the portable and each of the CPU's vector paths (AVX2, AVX-512 or NEON: the
+    // same bits, so alternating them trains the map as any one would), and one grown with
+    // pruning by contribution at 1.6 per million of the view, half a 640x480 pixel
+    // (LEGSLAM_BENCH_PRUNED=0 skips it), on the CPU's best path.
+    let vectors = vector_paths();
     let mut mappers = vec![grow(config.clone())];
-    let mut variants: Vec<(&str, usize, bool)> = Vec::new();
-    if env("LEGSLAM_BENCH_PORTABLE", 1) != 0 || vector.is_none() {
-        variants.push(("portable", 0, false));
+    let mut variants: Vec<(&str, usize, Simd)> = Vec::new();
+    if env("LEGSLAM_BENCH_PORTABLE", 1) != 0 || vectors.is_empty() {
+        variants.push(("portable", 0, Simd::Portable));
     }
-    if let Some(name) = vector {
-        variants.push((name, 0, true));
+    for &simd in &vectors {
+        variants.push((simd.name(), 0, simd));
     }
     if env("LEGSLAM_BENCH_PRUNED", 1) != 0 {
         let mut pruned = config.clone();
         pruned.prune.min_contribution = 1.6;
         mappers.push(grow(pruned));
-        variants.push(("pruned", 1, vector.is_some()));
+        variants.push(("pruned", 1, Simd::Auto));
     }
     let mut phases = vec![[(); 6].map(|_| Vec::new()); variants.len()];
     pool.install(|| {

@@ -18,8 +18,8 @@ use std::sync::LazyLock;
 use common::{compare, samples, variant};
 use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::raster::{
-    backward_into, native_simd, render, render_into, BackwardScratch, Camera, Gaussians, Gradients,
-    ImageGrads, RenderOptions, Rendered, Simd,
+    backward_into, render, render_into, vector_paths, BackwardScratch, Camera, Gaussians,
+    Gradients, ImageGrads, RenderOptions, Rendered, Simd,
 };
 use legslam_core::Real;
 
@@ -174,7 +174,7 @@ fn main() {
         r.radii.len()
     );
     let n = samples(10);
-    let simds: Vec<Simd> = [Simd::Portable].into_iter().chain(native_simd()).collect();
+    let simds: Vec<Simd> = [Simd::Portable].into_iter().chain(vector_paths()).collect();
     if simds.len() == 1 {
         eprintln!("no AVX2 or NEON on this CPU: the portable path only");
     }

@@ -113,6 +113,19 @@ impl OptionField for f32 {
     }
 }
 
+/// The rasterizer's implementation, as a flag: `true` for the CPU's best (`Auto`), `false` for
+/// the portable path. Code may pin one implementation (the benchmarks compare them); its flag
+/// then reads `true`, since it is a vector path.
+impl OptionField for crate::raster::Simd {
+    fn to_value(&self) -> Value {
+        Value::Bool(*self != crate::raster::Simd::Portable)
+    }
+    fn from_value(v: Value) -> Result<Self, Value> {
+        use crate::raster::Simd;
+        bool::from_value(v).map(|b| if b { Simd::Auto } else { Simd::Portable })
+    }
+}
+
 impl OptionField for Vec<usize> {
     fn to_value(&self) -> Value {
         Value::Ints(self.clone())

@@ -6,11 +6,11 @@
 mod common;
 
 use common::{assert_same_gradients, hard_scene, random_scene, render_and_backward};
-use legslam_core::raster::{native_simd, RenderOptions, Simd};
+use legslam_core::raster::{vector_paths, RenderOptions, Simd};
 
 #[test]
 fn kept_falloffs_give_the_gradients_of_evaluated_ones() {
-    let simds: Vec<Simd> = [Simd::Portable].into_iter().chain(native_simd()).collect();
+    let simds: Vec<Simd> = [Simd::Portable].into_iter().chain(vector_paths()).collect();
     for seed in 0..4u64 {
         let (w, h) = [(64, 48), (37, 29), (100, 17), (16, 16)][seed as usize];
         let k = [0, 5, 8, 19][seed as usize];

@@ -1,19 +1,18 @@
 //! The rasterizer gives the same bits on any number of threads: every image and every gradient,
 //! the pose's included (summed per fixed chunk of Gaussians, in order), on a scene of several
 //! chunks, with the features on a coarser layer, on the portable path and on the CPU's vector
-//! path where it has one.
+//! paths where it has them.
 
 mod common;
 
 use common::{assert_same_gradients, assert_same_images, random_scene, render_and_backward};
-use legslam_core::raster::{native_simd, RenderOptions, Simd};
+use legslam_core::raster::{vector_paths, RenderOptions, Simd};
 
 #[test]
 fn any_thread_count_gives_the_same_bits() {
     // 6000 Gaussians: six of the projection's and the backward's chunks of 1024.
     let s = random_scene(3, 6000, 96, 72, 3, 8);
-    let paths = [Some(Simd::Portable), native_simd()];
-    for simd in paths.into_iter().flatten() {
+    for simd in [Simd::Portable].into_iter().chain(vector_paths()) {
         let opts = RenderOptions {
             sh_degree: 3,
             simd,

@@ -56,9 +56,9 @@ pub struct MapperConfig {
     /// first keyframe's exposure is the map's.
     pub exposure_lr: Real,
     pub seed: u64,
-    /// Composite with AVX2 where the CPU has it (false: the portable path everywhere; both give
-    /// the same bits).
-    pub simd: bool,
+    /// The rasterizer's implementation (default: the CPU's best; every one gives the same
+    /// bits).
+    pub simd: Simd,
 }
 
 impl Default for MapperConfig {
@@ -87,7 +87,7 @@ impl Default for MapperConfig {
             pose_lr_rotation: 0.0,
             exposure_lr: 0.0,
             seed: 0,
-            simd: true,
+            simd: Simd::Auto,
         }
     }
 }
@@ -228,11 +228,7 @@ impl Mapper {
             depth: true,
             alpha: true,
             features,
-            simd: if self.config.simd {
-                Simd::Auto
-            } else {
-                Simd::Portable
-            },
+            simd: self.config.simd,
             ..Default::default()
         }
     }

@@ -1,8 +1,9 @@
 //! Eight pixels at a time: the operations the compositing kernels are written in, as a trait
 //! with three implementations. [`Portable`] works on plain arrays and runs everywhere (the
 //! fallback, and the reference the others are tested against); [`Avx2`] uses AVX2 registers and
-//! is chosen at run time where an x86-64 CPU has them; [`Neon`] uses two NEON registers, which
-//! every aarch64 CPU has. All perform the same IEEE operations in the same order (no fused
+//! is chosen at run time where an x86-64 CPU has them; [`Avx512`] is the same code compiled with
+//! AVX-512VL, whose 32 vector registers hold what AVX2's 16 spill (chosen where the CPU has
+//! it); [`Neon`] uses two NEON registers, which every aarch64 CPU has. All perform the same IEEE operations in the same order (no fused
 //! multiply-add; the same polynomial `exp`; the same tree for horizontal sums), so a kernel
 //! gives identical bits on any of them.
 
@@ -21,17 +22,23 @@ pub enum Simd {
     Portable,
     /// AVX2 (an error where the CPU lacks it, or in f64 builds).
     Avx2,
+    /// AVX2's operations on the same eight lanes, compiled with AVX-512F and VL: twice the
+    /// vector registers, the same bits (an error where the CPU lacks them, or in f64 builds).
+    Avx512,
     /// NEON (an error off aarch64, or in f64 builds).
     Neon,
 }
 
 impl Simd {
-    /// The implementation to run: `Portable`, `Avx2` or `Neon`.
+    /// The implementation to run: `Portable`, `Avx2`, `Avx512` or `Neon`.
     pub fn resolve(self) -> Result<Simd, String> {
         match self {
             Simd::Auto => Ok(native_simd().unwrap_or(Simd::Portable)),
             Simd::Avx2 if !avx2_available() => {
                 Err("this CPU (or an f64 build) has no AVX2 rasterizer path".into())
+            }
+            Simd::Avx512 if !avx512_available() => {
+                Err("this CPU (or an f64 build) has no AVX-512 rasterizer path".into())
             }
             Simd::Neon if !neon_available() => {
                 Err("this CPU (or an f64 build) has no NEON rasterizer path".into())
@@ -46,20 +53,28 @@ impl Simd {
             Simd::Auto => "auto",
             Simd::Portable => "portable",
             Simd::Avx2 => "avx2",
+            Simd::Avx512 => "avx512",
             Simd::Neon => "neon",
         }
     }
 }
 
-/// The vector implementation this CPU runs (`Avx2` or `Neon`), if it has one.
+/// The vector implementation this CPU runs best (`Avx512`, `Avx2` or `Neon`), if it has one.
 pub fn native_simd() -> Option<Simd> {
-    if avx2_available() {
-        Some(Simd::Avx2)
-    } else if neon_available() {
-        Some(Simd::Neon)
-    } else {
-        None
-    }
+    vector_paths().last().copied()
+}
+
+/// Every vector implementation this CPU can run, slowest first (tests compare each with the
+/// portable one).
+pub fn vector_paths() -> Vec<Simd> {
+    [
+        (Simd::Neon, neon_available()),
+        (Simd::Avx2, avx2_available()),
+        (Simd::Avx512, avx512_available()),
+    ]
+    .into_iter()
+    .filter_map(|(simd, here)| here.then_some(simd))
+    .collect()
 }
 
 /// Whether the AVX2 path can run here (never in f64 builds: it is an f32 kernel).
@@ -67,6 +82,21 @@ pub fn avx2_available() -> bool {
     #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
     {
         std::arch::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(all(target_arch = "x86_64", not(feature = "f64"))))]
+    {
+        false
+    }
+}
+
+/// Whether the AVX-512 path can run here: AVX2 with AVX-512F and VL (Intel since Skylake-SP,
+/// AMD since Zen 4), never in f64 builds.
+pub fn avx512_available() -> bool {
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    {
+        avx2_available()
+            && std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512vl")
     }
     #[cfg(not(all(target_arch = "x86_64", not(feature = "f64"))))]
     {
@@ -380,7 +410,7 @@ impl Lanes for Portable {
 }
 
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-pub(crate) use avx2::Avx2;
+pub(crate) use avx2::{Avx2, Avx512};
 
 #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
 mod avx2 {
@@ -391,12 +421,20 @@ mod avx2 {
 
     use super::{expf, Lanes, LANES};
 
+    /// Eight f32 lanes in an AVX register. `EVEX` tells the kernels compiled with AVX-512VL
+    /// (32 registers, mask registers) from those compiled with AVX2 alone: the operations are
+    /// the same, but a kernel instantiated for one type is compiled with one set of features,
+    /// so each entry point gets code of its own (with one type shared by both, the closures
+    /// inside a kernel were compiled once, outside either entry and without AVX2).
     #[derive(Clone, Copy, Debug)]
-    pub(crate) struct Avx2(__m256);
+    pub(crate) struct Avx<const EVEX: bool>(__m256);
+
+    pub(crate) type Avx2 = Avx<false>;
+    pub(crate) type Avx512 = Avx<true>;
 
     /// The polynomial exponential of `expf`, clamped to [LOW, high].
     #[inline(always)]
-    fn exp8(x: __m256, high: f32) -> Avx2 {
+    fn exp8(x: __m256, high: f32) -> __m256 {
         unsafe {
             let s = _mm256_set1_ps;
             let x = _mm256_min_ps(_mm256_max_ps(x, s(expf::LOW)), s(high));
@@ -420,7 +458,7 @@ mod avx2 {
                 _mm256_cvtps_epi32(n),
                 _mm256_set1_epi32(127),
             ));
-            Avx2(_mm256_mul_ps(y, _mm256_castsi256_ps(e)))
+            _mm256_mul_ps(y, _mm256_castsi256_ps(e))
         }
     }
 
@@ -502,17 +540,17 @@ mod avx2 {
         }
     }
 
-    impl Lanes for Avx2 {
+    impl<const EVEX: bool> Lanes for Avx<EVEX> {
         type Mask = __m256;
 
         #[inline(always)]
         fn splat(v: f32) -> Self {
-            unsafe { Avx2(_mm256_set1_ps(v)) }
+            unsafe { Self(_mm256_set1_ps(v)) }
         }
         #[inline(always)]
         fn load(s: &[f32]) -> Self {
             assert!(s.len() >= LANES);
-            unsafe { Avx2(_mm256_loadu_ps(s.as_ptr())) }
+            unsafe { Self(_mm256_loadu_ps(s.as_ptr())) }
         }
         #[inline(always)]
         fn store(self, s: &mut [f32]) {
@@ -521,31 +559,31 @@ mod avx2 {
         }
         #[inline(always)]
         fn add(self, o: Self) -> Self {
-            unsafe { Avx2(_mm256_add_ps(self.0, o.0)) }
+            unsafe { Self(_mm256_add_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn sub(self, o: Self) -> Self {
-            unsafe { Avx2(_mm256_sub_ps(self.0, o.0)) }
+            unsafe { Self(_mm256_sub_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn mul(self, o: Self) -> Self {
-            unsafe { Avx2(_mm256_mul_ps(self.0, o.0)) }
+            unsafe { Self(_mm256_mul_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn div(self, o: Self) -> Self {
-            unsafe { Avx2(_mm256_div_ps(self.0, o.0)) }
+            unsafe { Self(_mm256_div_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn min(self, o: Self) -> Self {
-            unsafe { Avx2(_mm256_min_ps(self.0, o.0)) }
+            unsafe { Self(_mm256_min_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn max(self, o: Self) -> Self {
-            unsafe { Avx2(_mm256_max_ps(self.0, o.0)) }
+            unsafe { Self(_mm256_max_ps(self.0, o.0)) }
         }
         #[inline(always)]
         fn sqrt(self) -> Self {
-            unsafe { Avx2(_mm256_sqrt_ps(self.0)) }
+            unsafe { Self(_mm256_sqrt_ps(self.0)) }
         }
         #[inline(always)]
         fn lt(self, o: Self) -> __m256 {
@@ -582,7 +620,7 @@ mod avx2 {
         }
         #[inline(always)]
         fn select(m: __m256, a: Self, b: Self) -> Self {
-            unsafe { Avx2(_mm256_blendv_ps(b.0, a.0, m)) }
+            unsafe { Self(_mm256_blendv_ps(b.0, a.0, m)) }
         }
         #[inline(always)]
         fn set_where(m: __m256, v: u32, out: &mut [u32]) {
@@ -596,11 +634,11 @@ mod avx2 {
         }
         #[inline(always)]
         fn exp(self) -> Self {
-            exp8(self.0, expf::HIGH)
+            Self(exp8(self.0, expf::HIGH))
         }
         #[inline(always)]
         fn exp_wide(self) -> Self {
-            exp8(self.0, expf::WIDE_HIGH)
+            Self(exp8(self.0, expf::WIDE_HIGH))
         }
         #[inline(always)]
         fn ln(self) -> Self {
@@ -629,7 +667,7 @@ mod avx2 {
                     ),
                     _mm256_mul_ps(z, s(0.5)),
                 );
-                Avx2(_mm256_add_ps(
+                Self(_mm256_add_ps(
                     _mm256_add_ps(m, y),
                     _mm256_mul_ps(e, s(expf::LN2_HI)),
                 ))
@@ -643,7 +681,7 @@ mod avx2 {
             assert!(width <= stride && rows.len() >= LANES * stride);
             if stride == 3 && width == 3 {
                 let [x, y, z] = deinterleave3(rows);
-                (out[0], out[1], out[2]) = (Avx2(x), Avx2(y), Avx2(z));
+                (out[0], out[1], out[2]) = (Self(x), Self(y), Self(z));
                 return;
             }
             for c0 in (0..width).step_by(LANES) {
@@ -659,7 +697,7 @@ mod avx2 {
                     row8(rows, row(7)),
                 ]);
                 for (o, v) in out[c0..].iter_mut().zip(cols) {
-                    *o = Avx2(v);
+                    *o = Self(v);
                 }
             }
         }
@@ -727,12 +765,12 @@ mod avx2 {
         fn dot(a: &[f32], b: &[f32]) -> f32 {
             let n = a.len().min(b.len());
             let mut i = 0;
-            let mut acc = Avx2::splat(0.0);
+            let mut acc = Self::splat(0.0);
             unsafe {
                 while i + LANES <= n {
                     let x = _mm256_loadu_ps(a.as_ptr().add(i));
                     let y = _mm256_loadu_ps(b.as_ptr().add(i));
-                    acc = Avx2(_mm256_add_ps(acc.0, _mm256_mul_ps(x, y)));
+                    acc = Self(_mm256_add_ps(acc.0, _mm256_mul_ps(x, y)));
                     i += LANES;
                 }
             }
@@ -1067,6 +1105,24 @@ mod tests {
     #[target_feature(enable = "avx2")]
     unsafe fn compare_avx2() {
         compare::<Avx2>()
+    }
+
+    /// The same for AVX-512 (where the CPU has it).
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    #[test]
+    fn avx512_gives_the_portable_bits() {
+        if !avx512_available() {
+            eprintln!("no AVX-512 here: it is not compared");
+            return;
+        }
+        // SAFETY: the CPU has AVX2, AVX-512F and VL (checked above).
+        unsafe { compare_avx512() }
+    }
+
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    #[target_feature(enable = "avx2,avx512f,avx512vl")]
+    unsafe fn compare_avx512() {
+        compare::<Avx512>()
     }
 
     /// The same for NEON (every aarch64 CPU has it).

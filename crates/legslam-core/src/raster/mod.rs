@@ -23,7 +23,9 @@ mod tiles;
 pub use backward::{backward, backward_into, BackwardScratch};
 pub use config::{RasterConfig, TILE};
 pub use forward::{render, render_into};
-pub use lanes::{avx2_available, native_simd, neon_available, Simd};
+pub use lanes::{
+    avx2_available, avx512_available, native_simd, neon_available, vector_paths, Simd,
+};
 
 use crate::camera::{Intrinsics, Pose};
 use crate::Real;

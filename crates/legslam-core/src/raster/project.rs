@@ -13,10 +13,10 @@
 use rayon::prelude::*;
 
 use super::forward::{Layer, Splat};
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-use super::lanes::Avx2;
 #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
 use super::lanes::Neon;
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+use super::lanes::{Avx2, Avx512};
 use super::lanes::{Lanes, Portable, Simd, LANES};
 use super::math::{at, ceil_in, floor_end_in, V2, V3};
 use super::sh;
@@ -192,6 +192,11 @@ pub(crate) fn project(
 /// One task's Gaussians, a block of eight at a time, through the implementation `simd` chose.
 fn project_task(simd: Simd, p: &Projector, first: usize, out: Outputs) {
     #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+    if simd == Simd::Avx512 {
+        // SAFETY: `Simd::resolve` chose AVX-512 only where the CPU has it.
+        return unsafe { project_task_avx512(p, first, out) };
+    }
+    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
     if simd == Simd::Avx2 {
         // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
         return unsafe { project_task_avx2(p, first, out) };
@@ -212,6 +217,16 @@ fn project_task(simd: Simd, p: &Projector, first: usize, out: Outputs) {
 #[target_feature(enable = "avx2")]
 unsafe fn project_task_avx2(p: &Projector, first: usize, out: Outputs) {
     blocks::<Avx2>(p, first, out)
+}
+
+/// [`blocks`] compiled with AVX-512F and VL (the AVX2 code, more registers).
+///
+/// # Safety
+/// The CPU must support AVX2, AVX-512F and AVX-512VL.
+#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+#[target_feature(enable = "avx2,avx512f,avx512vl")]
+unsafe fn project_task_avx512(p: &Projector, first: usize, out: Outputs) {
+    blocks::<Avx512>(p, first, out)
 }
 
 #[inline(always)]
