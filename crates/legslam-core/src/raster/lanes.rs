@@ -1,11 +1,11 @@
 //! Eight pixels at a time: the operations the compositing kernels are written in, as a trait
-//! with three implementations. [`Portable`] works on plain arrays and runs everywhere (the
+//! with four implementations. [`Portable`] works on plain arrays and runs everywhere (the
 //! fallback, and the reference the others are tested against); [`Avx2`] uses AVX2 registers and
-//! is chosen at run time where an x86-64 CPU has them; [`Avx512`] is the same code compiled with
-//! AVX-512VL, whose 32 vector registers hold what AVX2's 16 spill (chosen where the CPU has
-//! it); [`Neon`] uses two NEON registers, which every aarch64 CPU has. All perform the same IEEE operations in the same order (no fused
-//! multiply-add; the same polynomial `exp`; the same tree for horizontal sums), so a kernel
-//! gives identical bits on any of them.
+//! is chosen at run time where an x86-64 CPU has them; [`Avx512`] is the same code compiled
+//! with AVX-512VL, whose 32 vector registers hold what AVX2's 16 spill (chosen where the CPU
+//! has it); [`Neon`] uses two NEON registers, which every aarch64 CPU has. All perform the same
+//! IEEE operations in the same order (no fused multiply-add; the same polynomial `exp`; the
+//! same tree for horizontal sums), so a kernel gives identical bits on any of them.
 
 use crate::Real;
 
