@@ -246,4 +246,28 @@ mod tests {
             .unwrap_err()
             .contains("rate must be finite"));
     }
+
+    #[test]
+    fn the_rasterizer_path_is_a_flag() {
+        use crate::map::MapperConfig;
+        use crate::raster::Simd;
+        let mut c = MapperConfig::default();
+        let flag = |c: &MapperConfig| c.entries().into_iter().find(|(n, _)| *n == "simd");
+        assert_eq!(flag(&c).unwrap().1, Value::Bool(true));
+        c.set("simd", Value::Bool(false)).unwrap();
+        assert_eq!(
+            (c.simd, flag(&c).unwrap().1),
+            (Simd::Portable, Value::Bool(false))
+        );
+        c.set("simd", Value::Bool(true)).unwrap();
+        assert_eq!(c.simd, Simd::Auto);
+        c.simd = Simd::Avx2;
+        assert_eq!(
+            flag(&c).unwrap().1,
+            Value::Bool(true),
+            "a pinned path is a vector path"
+        );
+        let e = c.set("simd", Value::Int(1)).unwrap_err();
+        assert!(e.contains("simd must be true or false"), "{e}");
+    }
 }
