@@ -13,11 +13,7 @@ use super::composite::{
     cover_kept, for_each_group, prefetch, prefetch_ahead, TileRect, TILE_LANES,
 };
 use super::forward::{split_chunks, Layer};
-#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-use super::lanes::Neon;
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-use super::lanes::{Avx2, Avx512};
-use super::lanes::{Lanes, Portable, Simd, LANES};
+use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{V2, V3};
 use super::project::View;
 use super::project_backward::{backward_task, conic_to_cov_grad, BlockGrads, ScreenGrads};
@@ -411,42 +407,15 @@ impl TileGrads {
 /// The backward walk over tile `t` through the implementation `simd` chose: `slots` receives
 /// one gradient slot per pair of the tile's list.
 fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx512 {
-        // SAFETY: `Simd::resolve` chose AVX-512 only where the CPU has it.
-        return unsafe { tile_backward_avx512(job, t, tg, slots) };
-    }
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx2 {
-        // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
-        return unsafe { tile_backward_avx2(job, t, tg, slots) };
-    }
-    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-    if simd == Simd::Neon {
-        return walk_tile::<Neon>(job, t, tg, slots);
-    }
-    let _ = simd;
-    walk_tile::<Portable>(job, t, tg, slots)
-}
-
-/// [`walk_tile`] compiled with AVX2.
-///
-/// # Safety
-/// The CPU must support AVX2.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2")]
-unsafe fn tile_backward_avx2(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
-    walk_tile::<Avx2>(job, t, tg, slots)
-}
-
-/// [`walk_tile`] compiled with AVX-512F and VL (the AVX2 code, more registers).
-///
-/// # Safety
-/// The CPU must support AVX2, AVX-512F and AVX-512VL.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2,avx512f,avx512vl")]
-unsafe fn tile_backward_avx512(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
-    walk_tile::<Avx512>(job, t, tg, slots)
+    dispatch!(
+        simd,
+        walk_tile(
+            job: &TileJob,
+            t: usize,
+            tg: &mut TileGrads,
+            slots: &mut [Real],
+        )
+    )
 }
 
 /// Walks tile `t`'s list front to back as the forward pass did (Gaussian-major, eight pixels

@@ -5,11 +5,7 @@
 use rayon::prelude::*;
 
 use super::composite::{composite, TileAcc, TileRect};
-#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-use super::lanes::Neon;
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-use super::lanes::{Avx2, Avx512};
-use super::lanes::{Portable, Simd};
+use super::lanes::{dispatch, Simd};
 use super::math::{V2, V3};
 use super::project;
 use super::tiles::{bin, Bins, Grid, Rect};
@@ -303,60 +299,17 @@ fn composite_tile(
     cfg: &RasterConfig,
     falloffs: Option<&mut Vec<Real>>,
 ) {
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx512 {
-        // SAFETY: `Simd::resolve` chose AVX-512 only where the CPU has it.
-        return unsafe { composite_avx512(acc, list, splats, features, k, r, cfg, falloffs) };
-    }
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx2 {
-        // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
-        return unsafe { composite_avx2(acc, list, splats, features, k, r, cfg, falloffs) };
-    }
-    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-    if simd == Simd::Neon {
-        return composite::<Neon>(acc, list, splats, features, k, r, cfg, falloffs);
-    }
-    let _ = simd;
-    composite::<Portable>(acc, list, splats, features, k, r, cfg, falloffs)
-}
-
-/// [`composite`] compiled with AVX2.
-///
-/// # Safety
-/// The CPU must support AVX2.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn composite_avx2(
-    acc: &mut TileAcc,
-    list: &[u32],
-    splats: &[Splat],
-    features: &[Real],
-    k: usize,
-    r: &TileRect,
-    cfg: &RasterConfig,
-    falloffs: Option<&mut Vec<Real>>,
-) {
-    composite::<Avx2>(acc, list, splats, features, k, r, cfg, falloffs)
-}
-
-/// [`composite`] compiled with AVX-512F and VL (the AVX2 code, more registers).
-///
-/// # Safety
-/// The CPU must support AVX2, AVX-512F and AVX-512VL.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2,avx512f,avx512vl")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn composite_avx512(
-    acc: &mut TileAcc,
-    list: &[u32],
-    splats: &[Splat],
-    features: &[Real],
-    k: usize,
-    r: &TileRect,
-    cfg: &RasterConfig,
-    falloffs: Option<&mut Vec<Real>>,
-) {
-    composite::<Avx512>(acc, list, splats, features, k, r, cfg, falloffs)
+    dispatch!(
+        simd,
+        composite(
+            acc: &mut TileAcc,
+            list: &[u32],
+            splats: &[Splat],
+            features: &[Real],
+            k: usize,
+            r: &TileRect,
+            cfg: &RasterConfig,
+            falloffs: Option<&mut Vec<Real>>,
+        )
+    )
 }

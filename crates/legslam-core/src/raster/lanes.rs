@@ -110,6 +110,44 @@ pub fn neon_available() -> bool {
     cfg!(all(target_arch = "aarch64", not(feature = "f64")))
 }
 
+/// The body of a kernel's dispatch: `kernel::<L>(args)` through the implementation `simd`
+/// chose (see [`Simd::resolve`]), each x86-64 vector path through an entry point compiled with
+/// its own CPU features, so that the kernel inlined into it is too.
+macro_rules! dispatch {
+    ($simd:expr, $kernel:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)?) => {{
+        #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
+        {
+            /// # Safety
+            /// The CPU must support AVX2.
+            #[target_feature(enable = "avx2")]
+            #[allow(clippy::too_many_arguments)]
+            unsafe fn avx2($($arg: $ty),*) $(-> $ret)? {
+                $kernel::<$crate::raster::lanes::Avx2>($($arg),*)
+            }
+            /// # Safety
+            /// The CPU must support AVX2, AVX-512F and AVX-512VL.
+            #[target_feature(enable = "avx2,avx512f,avx512vl")]
+            #[allow(clippy::too_many_arguments)]
+            unsafe fn avx512($($arg: $ty),*) $(-> $ret)? {
+                $kernel::<$crate::raster::lanes::Avx512>($($arg),*)
+            }
+            match $simd {
+                // SAFETY: `Simd::resolve` chose each only where the CPU has it.
+                $crate::raster::Simd::Avx2 => return unsafe { avx2($($arg),*) },
+                $crate::raster::Simd::Avx512 => return unsafe { avx512($($arg),*) },
+                _ => {}
+            }
+        }
+        #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
+        if $simd == $crate::raster::Simd::Neon {
+            return $kernel::<$crate::raster::lanes::Neon>($($arg),*);
+        }
+        let _ = $simd;
+        $kernel::<$crate::raster::lanes::Portable>($($arg),*)
+    }};
+}
+pub(crate) use dispatch;
+
 /// Eight lanes of `Real` and the operations on them.
 pub(crate) trait Lanes: Copy {
     type Mask: Copy;

@@ -13,11 +13,7 @@
 use rayon::prelude::*;
 
 use super::forward::{Layer, Splat};
-#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-use super::lanes::Neon;
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-use super::lanes::{Avx2, Avx512};
-use super::lanes::{Lanes, Portable, Simd, LANES};
+use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{at, ceil_in, floor_end_in, V2, V3};
 use super::sh;
 use super::tiles::{rect, rect_area, Grid, Rect};
@@ -191,42 +187,14 @@ pub(crate) fn project(
 
 /// One task's Gaussians, a block of eight at a time, through the implementation `simd` chose.
 fn project_task(simd: Simd, p: &Projector, first: usize, out: Outputs) {
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx512 {
-        // SAFETY: `Simd::resolve` chose AVX-512 only where the CPU has it.
-        return unsafe { project_task_avx512(p, first, out) };
-    }
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx2 {
-        // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
-        return unsafe { project_task_avx2(p, first, out) };
-    }
-    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-    if simd == Simd::Neon {
-        return blocks::<Neon>(p, first, out);
-    }
-    let _ = simd;
-    blocks::<Portable>(p, first, out)
-}
-
-/// [`blocks`] compiled with AVX2.
-///
-/// # Safety
-/// The CPU must support AVX2.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2")]
-unsafe fn project_task_avx2(p: &Projector, first: usize, out: Outputs) {
-    blocks::<Avx2>(p, first, out)
-}
-
-/// [`blocks`] compiled with AVX-512F and VL (the AVX2 code, more registers).
-///
-/// # Safety
-/// The CPU must support AVX2, AVX-512F and AVX-512VL.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2,avx512f,avx512vl")]
-unsafe fn project_task_avx512(p: &Projector, first: usize, out: Outputs) {
-    blocks::<Avx512>(p, first, out)
+    dispatch!(
+        simd,
+        blocks(
+            p: &Projector,
+            first: usize,
+            out: Outputs,
+        )
+    )
 }
 
 #[inline(always)]
@@ -726,6 +694,7 @@ pub(crate) fn colour<L: Lanes>(p: &View, rows: &Rows, mean: &[L; 3]) -> Colour<L
 mod tests {
     use super::*;
     use crate::camera::{Intrinsics, Pose};
+    use crate::raster::lanes::Portable;
     use crate::rng::Rng;
 
     /// The cheap bound contains the exact extent of every Gaussian the full projection keeps,

@@ -3,11 +3,7 @@
 //! parameters and its share of the camera pose's. The forward quantities come from the forward
 //! pass's own functions ([`centre`], [`shape`], [`colour`]), so they are its values, bit for bit.
 
-#[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-use super::lanes::Neon;
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-use super::lanes::{Avx2, Avx512};
-use super::lanes::{Lanes, Portable, Simd, LANES};
+use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{V2, V3};
 use super::project::{centre, colour, dot3, lanes, shape, Rows, View, WIDEST_ROW};
 use super::sh;
@@ -68,54 +64,16 @@ pub(crate) fn backward_task(
     on: &[bool],
     out: BlockGrads,
 ) -> [Real; 6] {
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx512 {
-        // SAFETY: `Simd::resolve` chose AVX-512 only where the CPU has it.
-        return unsafe { backward_task_avx512(v, first, screen, on, out) };
-    }
-    #[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-    if simd == Simd::Avx2 {
-        // SAFETY: `Simd::resolve` chose AVX2 only where the CPU has it.
-        return unsafe { backward_task_avx2(v, first, screen, on, out) };
-    }
-    #[cfg(all(target_arch = "aarch64", not(feature = "f64")))]
-    if simd == Simd::Neon {
-        return blocks::<Neon>(v, first, screen, on, out);
-    }
-    let _ = simd;
-    blocks::<Portable>(v, first, screen, on, out)
-}
-
-/// [`blocks`] compiled with AVX2.
-///
-/// # Safety
-/// The CPU must support AVX2.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2")]
-unsafe fn backward_task_avx2(
-    v: &View,
-    first: usize,
-    screen: &[ScreenGrads],
-    on: &[bool],
-    out: BlockGrads,
-) -> [Real; 6] {
-    blocks::<Avx2>(v, first, screen, on, out)
-}
-
-/// [`blocks`] compiled with AVX-512F and VL (the AVX2 code, more registers).
-///
-/// # Safety
-/// The CPU must support AVX2, AVX-512F and AVX-512VL.
-#[cfg(all(target_arch = "x86_64", not(feature = "f64")))]
-#[target_feature(enable = "avx2,avx512f,avx512vl")]
-unsafe fn backward_task_avx512(
-    v: &View,
-    first: usize,
-    screen: &[ScreenGrads],
-    on: &[bool],
-    out: BlockGrads,
-) -> [Real; 6] {
-    blocks::<Avx512>(v, first, screen, on, out)
+    dispatch!(
+        simd,
+        blocks(
+            v: &View,
+            first: usize,
+            screen: &[ScreenGrads],
+            on: &[bool],
+            out: BlockGrads,
+        ) -> [Real; 6]
+    )
 }
 
 #[inline(always)]
