@@ -138,6 +138,7 @@ pub fn backward_into(
             ..*grads
         },
         k: if coarse { 0 } else { k },
+        colour: true,
         cfg,
         kept_falloffs: opts.for_backward,
     };
@@ -152,6 +153,7 @@ pub fn backward_into(
                 ..Default::default()
             },
             k,
+            colour: false,
             cfg,
             kept_falloffs: opts.for_backward,
         };
@@ -335,6 +337,8 @@ struct TileJob<'a> {
     grads: ImageGrads<'a>,
     /// Feature channels the layer composited.
     k: usize,
+    /// Whether the layer composited colour and depth (the main layer does).
+    colour: bool,
     cfg: &'a RasterConfig,
     /// Whether the forward pass kept the layer's falloffs.
     kept_falloffs: bool,
@@ -418,10 +422,29 @@ fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots:
     )
 }
 
-/// Walks tile `t`'s list front to back as the forward pass did (Gaussian-major, eight pixels
-/// at a time), turning d(loss)/d(pixel) into each pair's screen-space and feature gradients.
+/// [`walk`] compiled for what the layer's loss has: the features' own layer has no colour or
+/// depth, and a training loss no alpha term, whose gradients would be zeros walked through
+/// every group (the same values either way).
 #[inline(always)]
 fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
+    match (job.colour, job.grads.alpha.is_some()) {
+        (true, true) => walk::<L, true, true>(job, t, tg, slots),
+        (true, false) => walk::<L, true, false>(job, t, tg, slots),
+        // The features' own layer: alpha is rendered in the main one.
+        (false, _) => walk::<L, false, false>(job, t, tg, slots),
+    }
+}
+
+/// Walks tile `t`'s list front to back as the forward pass did (Gaussian-major, eight pixels
+/// at a time), turning d(loss)/d(pixel) into each pair's screen-space and feature gradients;
+/// `COLOUR`: the layer composites colour and depth, `ALPHA`: the loss has an alpha term.
+#[inline(always)]
+fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
+    job: &TileJob,
+    t: usize,
+    tg: &mut TileGrads,
+    slots: &mut [Real],
+) {
     let (st, k, cfg) = (job.layer, job.k, job.cfg);
     let stride = SLOTS + k;
     let r = TileRect::new(&st.grid, t, st.width, st.height);
@@ -474,18 +497,25 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
             // Spelt out, as the splats above: `array::map` was not inlined into the AVX2 walk,
             // so these loads went through a call compiled without AVX2 that passes vectors in
             // memory (2% of the mapper bench's profile; the backward 3-6% faster without it).
-            let gc = [
-                L::load(&tg.color[0][lp..]),
-                L::load(&tg.color[1][lp..]),
-                L::load(&tg.color[2][lp..]),
-            ];
-            let gd = L::load(&tg.depth[lp..]);
-            let ga = L::load(&tg.alpha[lp..]);
-            let mut x_j = gc[0]
-                .mul(color[0])
-                .add(gc[1].mul(color[1]))
-                .add(gc[2].mul(color[2]))
-                .add(gd.mul(depth));
+            let mut x_j = zero;
+            if COLOUR {
+                let gc = [
+                    L::load(&tg.color[0][lp..]),
+                    L::load(&tg.color[1][lp..]),
+                    L::load(&tg.color[2][lp..]),
+                ];
+                let gd = L::load(&tg.depth[lp..]);
+                x_j = gc[0]
+                    .mul(color[0])
+                    .add(gc[1].mul(color[1]))
+                    .add(gc[2].mul(color[2]))
+                    .add(gd.mul(depth));
+                for ch in 0..3 {
+                    acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
+                }
+                acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
+                acc[slot::WEIGHT] = acc[slot::WEIGHT].add(wgt);
+            }
             if let Some(gf) = gf {
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
@@ -501,19 +531,20 @@ fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut 
                 }
                 x_j = x_j.add(L::load(&dots));
             }
-            for ch in 0..3 {
-                acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
-            }
-            acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
-            acc[slot::WEIGHT] = acc[slot::WEIGHT].add(wgt);
             let prefix = L::load(&tg.prefix[lp..]);
             let prefix_next = prefix.add(wgt.mul(x_j));
             let next = t.mul(one.sub(cv.alpha));
-            let t_final = L::load(&tg.t_final[lp..]);
             let total = L::load(&tg.total[lp..]);
             // What lies behind this Gaussian, and d(loss)/d(its alpha).
-            let behind = total.sub(prefix_next).add(ga.mul(next.sub(t_final)));
-            let g_alpha = t.mul(x_j.add(ga)).sub(behind.div(one.sub(cv.alpha)));
+            let mut behind = total.sub(prefix_next);
+            let mut x_a = x_j;
+            if ALPHA {
+                let ga = L::load(&tg.alpha[lp..]);
+                let t_final = L::load(&tg.t_final[lp..]);
+                behind = behind.add(ga.mul(next.sub(t_final)));
+                x_a = x_j.add(ga);
+            }
+            let g_alpha = t.mul(x_a).sub(behind.div(one.sub(cv.alpha)));
             let g_alpha = L::select(L::and_not(ok, cv.capped), g_alpha, zero);
             acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha));
             let g_sigma = zero.sub(cv.alpha.mul(g_alpha));

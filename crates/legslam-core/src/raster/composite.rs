@@ -246,10 +246,32 @@ impl TileAcc {
 /// Composites the tile's list `list` (front to back) into `acc`: Gaussian-major, so that only
 /// the pixels inside each Gaussian's span are visited, eight at a time; every pixel still sees
 /// its Gaussians in depth order. `features` is [N, k]. With `falloffs`, appends each group's
-/// exponential there (zero in the lanes not covered), for [`cover_kept`].
+/// exponential there (zero in the lanes not covered), for [`cover_kept`]. Without `colour`,
+/// colour and depth are not accumulated (the features' own layer has none).
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn composite<L: Lanes>(
+    acc: &mut TileAcc,
+    list: &[u32],
+    splats: &[Splat],
+    features: &[Real],
+    k: usize,
+    r: &TileRect,
+    cfg: &RasterConfig,
+    falloffs: Option<&mut Vec<Real>>,
+    colour: bool,
+) {
+    if colour {
+        composite_with::<L, true>(acc, list, splats, features, k, r, cfg, falloffs)
+    } else {
+        composite_with::<L, false>(acc, list, splats, features, k, r, cfg, falloffs)
+    }
+}
+
+/// [`composite`], compiled with colour and depth or without.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn composite_with<L: Lanes, const COLOUR: bool>(
     acc: &mut TileAcc,
     list: &[u32],
     splats: &[Splat],
@@ -296,12 +318,14 @@ pub(crate) fn composite<L: Lanes>(
                 acc.active -= stopped.count_ones() as usize;
             }
             let wgt = L::select(add, c.alpha.mul(t), zero);
-            for (ch, v) in acc.color.iter_mut().zip(color) {
-                L::load(&ch[lp..]).add(wgt.mul(v)).store(&mut ch[lp..]);
+            if COLOUR {
+                for (ch, v) in acc.color.iter_mut().zip(color) {
+                    L::load(&ch[lp..]).add(wgt.mul(v)).store(&mut ch[lp..]);
+                }
+                L::load(&acc.depth[lp..])
+                    .add(wgt.mul(depth))
+                    .store(&mut acc.depth[lp..]);
             }
-            L::load(&acc.depth[lp..])
-                .add(wgt.mul(depth))
-                .store(&mut acc.depth[lp..]);
             L::select(add, next, t).store(&mut acc.trans[lp..]);
             L::set_where(add, j as u32 + 1, &mut acc.end[lp..]);
             if k > 0 {

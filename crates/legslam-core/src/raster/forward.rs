@@ -233,6 +233,8 @@ fn composite_layer(
     layer.falloff_start.resize(grid.len(), 0);
     let rows = TILE * w;
     let n = grid.tiles_y;
+    // Colour and depth are accumulated only where they are output.
+    let colour = !images.color.is_empty() || !images.depth.is_empty();
     let outs: Vec<_> = split_chunks(images.color, rows * 3, n)
         .into_iter()
         .zip(split_chunks(images.depth, rows, n))
@@ -257,7 +259,9 @@ fn composite_layer(
                 *start = fo.len();
                 if !list.is_empty() {
                     let kept = keep.then_some(&mut *fo);
-                    composite_tile(simd, &mut acc, list, splats, features, k, &r, cfg, kept);
+                    composite_tile(
+                        simd, &mut acc, list, splats, features, k, &r, cfg, kept, colour,
+                    );
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -298,6 +302,7 @@ fn composite_tile(
     r: &TileRect,
     cfg: &RasterConfig,
     falloffs: Option<&mut Vec<Real>>,
+    colour: bool,
 ) {
     dispatch!(
         simd,
@@ -310,6 +315,7 @@ fn composite_tile(
             r: &TileRect,
             cfg: &RasterConfig,
             falloffs: Option<&mut Vec<Real>>,
+            colour: bool,
         )
     )
 }
