@@ -482,9 +482,10 @@ mod avx2 {
         unsafe {
             let s = _mm256_set1_ps;
             let x = _mm256_min_ps(_mm256_max_ps(x, s(expf::LOW)), s(high));
-            let n = _mm256_sub_ps(
-                _mm256_add_ps(_mm256_mul_ps(x, s(expf::LOG2E)), s(expf::ROUND)),
-                s(expf::ROUND),
+            // One rounding instruction for the portable path's add and subtract of ROUND: the
+            // same integer (ties to even) for every clamped x.
+            let n = _mm256_round_ps::<{ _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC }>(
+                _mm256_mul_ps(x, s(expf::LOG2E)),
             );
             let r = _mm256_sub_ps(
                 _mm256_sub_ps(x, _mm256_mul_ps(n, s(expf::LN2_HI))),
@@ -876,10 +877,8 @@ mod neon {
         unsafe {
             let s = vdupq_n_f32;
             let x = min4(max4(x, s(expf::LOW)), s(high));
-            let n = vsubq_f32(
-                vaddq_f32(vmulq_f32(x, s(expf::LOG2E)), s(expf::ROUND)),
-                s(expf::ROUND),
-            );
+            // As AVX2's: one rounding instruction (ties to even) for the add and subtract.
+            let n = vrndnq_f32(vmulq_f32(x, s(expf::LOG2E)));
             let r = vsubq_f32(
                 vsubq_f32(x, vmulq_f32(n, s(expf::LN2_HI))),
                 vmulq_f32(n, s(expf::LN2_LO)),
