@@ -44,7 +44,12 @@ impl LaneAcc {
     /// Adds `w J J^T` and `w J r` of the lanes in `m` (the others may hold anything, even NaN).
     #[inline(always)]
     unsafe fn add(&mut self, j: &[__m256; 6], r: __m256, w: __m256, m: __m256) {
-        let j = j.map(|v| _mm256_and_ps(v, m));
+        // Written out rather than `j.map(..)`: a closure is compiled without this function's
+        // target features and may be left as an outlined call in the hot loop.
+        let mut j = *j;
+        for v in &mut j {
+            *v = _mm256_and_ps(*v, m);
+        }
         let (r, w) = (_mm256_and_ps(r, m), _mm256_and_ps(w, m));
         let mut k = H;
         for a in 0..6 {
@@ -201,10 +206,17 @@ pub(crate) unsafe fn row_avx2(
     let (rw, rh) = (lev.w as f32, lev.h as f32);
     let wi = _mm256_set1_epi32(lev.w as i32);
     let (fx, fy, cx, cy) = (splat(lev.fx), splat(lev.fy), splat(lev.cx), splat(lev.cy));
-    let rs = rot.map(|row| row.map(|v| splat(v)));
-    let ts = t.map(|v| splat(v));
-    let yr = splat(f.yr[y]);
     let zero = _mm256_setzero_ps();
+    // Plain loops, not closures (see `LaneAcc::add`).
+    let mut rs = [[zero; 3]; 3];
+    let mut ts = [zero; 3];
+    for i in 0..3 {
+        for k in 0..3 {
+            rs[i][k] = splat(rot[i][k]);
+        }
+        ts[i] = splat(t[i]);
+    }
+    let yr = splat(f.yr[y]);
     let o = y * f.w;
     for g in 0..groups {
         let x0 = 8 * g;
@@ -219,15 +231,16 @@ pub(crate) unsafe fn row_avx2(
             mul(yr, z),
             z,
         ];
-        let xc: [__m256; 3] = std::array::from_fn(|i| {
-            add(
+        let mut xc = [zero; 3];
+        for i in 0..3 {
+            xc[i] = add(
                 add(
                     add(mul(rs[i][0], xf[0]), mul(rs[i][1], xf[1])),
                     mul(rs[i][2], xf[2]),
                 ),
                 ts[i],
-            )
-        });
+            );
+        }
         let mut m = and(valid, gt(xc[2], splat(1e-3)));
         let iz = _mm256_div_ps(splat(1.0), xc[2]);
         let u = add(mul(mul(fx, xc[0]), iz), cx);
