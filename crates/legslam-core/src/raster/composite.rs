@@ -243,44 +243,54 @@ impl TileAcc {
     }
 }
 
+/// What compositing every tile of one layer reads.
+#[derive(Clone, Copy)]
+pub(crate) struct TileInputs<'a> {
+    pub splats: &'a [Splat],
+    /// The Gaussians' features, [N, k].
+    pub features: &'a [Real],
+    /// Feature channels the layer composites.
+    pub k: usize,
+    /// Whether the layer accumulates colour and depth (the features' own layer has none).
+    pub colour: bool,
+    pub cfg: &'a RasterConfig,
+}
+
 /// Composites the tile's list `list` (front to back) into `acc`: Gaussian-major, so that only
 /// the pixels inside each Gaussian's span are visited, eight at a time; every pixel still sees
-/// its Gaussians in depth order. `features` is [N, k]. With `falloffs`, appends each group's
-/// exponential there (zero in the lanes not covered), for [`cover_kept`]. Without `colour`,
-/// colour and depth are not accumulated (the features' own layer has none).
+/// its Gaussians in depth order. With `falloffs`, appends each group's exponential there (zero
+/// in the lanes not covered), for [`cover_kept`].
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn composite<L: Lanes>(
     acc: &mut TileAcc,
+    inputs: &TileInputs,
     list: &[u32],
-    splats: &[Splat],
-    features: &[Real],
-    k: usize,
     r: &TileRect,
-    cfg: &RasterConfig,
     falloffs: Option<&mut Vec<Real>>,
-    colour: bool,
 ) {
-    if colour {
-        composite_with::<L, true>(acc, list, splats, features, k, r, cfg, falloffs)
+    if inputs.colour {
+        composite_with::<L, true>(acc, inputs, list, r, falloffs)
     } else {
-        composite_with::<L, false>(acc, list, splats, features, k, r, cfg, falloffs)
+        composite_with::<L, false>(acc, inputs, list, r, falloffs)
     }
 }
 
 /// [`composite`], compiled with colour and depth or without.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn composite_with<L: Lanes, const COLOUR: bool>(
     acc: &mut TileAcc,
+    inputs: &TileInputs,
     list: &[u32],
-    splats: &[Splat],
-    features: &[Real],
-    k: usize,
     r: &TileRect,
-    cfg: &RasterConfig,
     mut falloffs: Option<&mut Vec<Real>>,
 ) {
+    let TileInputs {
+        splats,
+        features,
+        k,
+        cfg,
+        ..
+    } = *inputs;
     let cols = r.columns();
     let (zero, one) = (L::splat(0.0), L::splat(1.0));
     let t_min = L::splat(cfg.transmittance_min);

@@ -4,7 +4,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{composite, TileAcc, TileRect};
+use super::composite::{composite, TileAcc, TileInputs, TileRect};
 use super::lanes::{dispatch, Simd};
 use super::math::{V2, V3};
 use super::project;
@@ -246,7 +246,14 @@ fn composite_layer(
         .zip(layer.falloff_start.chunks_mut(grid.tiles_x))
         .enumerate()
         .collect();
-    let (bins, splats) = (&layer.bins, &layer.splats[..]);
+    let bins = &layer.bins;
+    let inputs = TileInputs {
+        splats: &layer.splats,
+        features,
+        k,
+        colour,
+        cfg,
+    };
     outs.into_par_iter().for_each(
         |(ty, (((((((col, dep), alp), fea), end), tr), fo), starts))| {
             let mut acc = TileAcc::new(k);
@@ -259,9 +266,7 @@ fn composite_layer(
                 *start = fo.len();
                 if !list.is_empty() {
                     let kept = keep.then_some(&mut *fo);
-                    composite_tile(
-                        simd, &mut acc, list, splats, features, k, &r, cfg, kept, colour,
-                    );
+                    composite_tile(simd, &mut acc, &inputs, list, &r, kept);
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -291,31 +296,22 @@ fn composite_layer(
 }
 
 /// One tile through the implementation `simd` chose.
-#[allow(clippy::too_many_arguments)]
 fn composite_tile(
     simd: Simd,
     acc: &mut TileAcc,
+    inputs: &TileInputs,
     list: &[u32],
-    splats: &[Splat],
-    features: &[Real],
-    k: usize,
     r: &TileRect,
-    cfg: &RasterConfig,
     falloffs: Option<&mut Vec<Real>>,
-    colour: bool,
 ) {
     dispatch!(
         simd,
         composite(
             acc: &mut TileAcc,
+            inputs: &TileInputs,
             list: &[u32],
-            splats: &[Splat],
-            features: &[Real],
-            k: usize,
             r: &TileRect,
-            cfg: &RasterConfig,
             falloffs: Option<&mut Vec<Real>>,
-            colour: bool,
         )
     )
 }
