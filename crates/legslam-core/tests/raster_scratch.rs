@@ -1,7 +1,8 @@
-//! The backward pass with buffers reused across calls against fresh buffers: nothing of one
-//! pass may leak into the rows of the next that it lists as on screen, whatever the sizes and
-//! whichever Gaussians are on screen (the other rows are not read: zero in fresh buffers,
-//! whatever the last pass left in reused ones).
+//! The render and the backward pass with buffers reused across calls against fresh buffers:
+//! a reused render's images are a fresh one's whatever the last render left in them, and
+//! nothing of one backward pass may leak into the rows of the next that it lists as on screen,
+//! whatever the sizes and whichever Gaussians are on screen (the other rows are not read: zero
+//! in fresh buffers, whatever the last pass left in reused ones).
 
 mod common;
 
@@ -10,6 +11,7 @@ use legslam_core::raster::{
     backward, backward_into, render, render_into, BackwardScratch, Gradients, ImageGrads,
     RenderOptions, Rendered,
 };
+use legslam_core::Real;
 
 #[test]
 fn reused_buffers_give_what_fresh_ones_give() {
@@ -23,6 +25,8 @@ fn reused_buffers_give_what_fresh_ones_give() {
         (2, 50, 32, 24, 6),
         (3, 200, 48, 40, 0),
         (4, 600, 80, 60, 3),
+        // A few Gaussians: most tiles have nothing to composite.
+        (10, 3, 64, 48, 4),
     ]
     .into_iter()
     .map(|(seed, n, w, h, k)| (seed, random_scene(seed, n, w, h, 1, k)))
@@ -50,10 +54,25 @@ fn reused_buffers_give_what_fresh_ones_give() {
             for_backward: seed != 3,
             ..opts
         };
+        // What the last render left is poisoned: a pixel the compositing did not write would
+        // keep a NaN, which equals nothing.
+        for v in [
+            &mut reused.color,
+            &mut reused.depth,
+            &mut reused.alpha,
+            &mut reused.features,
+        ] {
+            v.fill(Real::NAN);
+        }
         render_into(&s.gaussians(), &s.camera(), &kept, &mut reused).unwrap();
         assert_eq!(
-            (&r.color, &r.depth, &r.features),
-            (&reused.color, &reused.depth, &reused.features),
+            (&r.color, &r.depth, &r.alpha, &r.features),
+            (
+                &reused.color,
+                &reused.depth,
+                &reused.alpha,
+                &reused.features
+            ),
             "scene {seed}: a reused render"
         );
         let mut rng = Rng::new(seed + 100);
