@@ -197,8 +197,12 @@ class SLAMConfig:
     #: one after each (`map_iters_frame` 1): 7-Scenes 3.49 against 2.80 fps, 25.14 against
     #: 25.23 dB every 5th frame (ATE 3.95 / 3.97 cm); 400-frame Replica render 35.91 against
     #: 35.48 dB, with Kinect-like noise 35.22 against 34.82 dB; the built-in scene 2.3-2.4
-    #: against 1.9 fps, 31.87 against 32.06 dB.
-    final_iters_per_frame: float = 0.4
+    #: against 1.9 fps, 31.87 against 32.06 dB. 0.6 since the engine got faster (2026-12-03):
+    #: 7-Scenes 24.99 against 24.81 dB, the 400-frame Replica render 35.48 against 35.41 dB,
+    #: the built-in scene 31.95 against 31.73 dB, for 7-16% of the frame rate (7-Scenes 5.28
+    #: against 5.66 and 6.29 fps, the Replica render 5.00 against 5.47); 0.8 gave 25.11, 35.76
+    #: and 32.07 dB at 4.84 and 4.66 fps, too near 4 fps for a slow hour.
+    final_iters_per_frame: float = 0.6
     #: With `mapping_thread`: the final iterations go on past `final_iters` while they have
     #: taken less than this share of the time the frames took (0: `final_iters` only). The
     #: map of a real-time run is short of iterations, and this spends on it a set share of
