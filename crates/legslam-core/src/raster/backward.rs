@@ -479,15 +479,17 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
         let mut touched = false;
         for_each_group(s, &r, |grp| {
             let lp = grp.lp;
+            // The pixels whose list reaches this Gaussian.
+            let open = L::below(j as u32, &tg.end[lp..]);
             let cv = match kept {
                 Some(kept) => {
                     let falloff = L::load(&kept[group * LANES..]);
                     group += 1;
-                    cover_kept(s, L::load(&cols[grp.gx..]), falloff, cfg)
+                    cover_kept(s, L::load(&cols[grp.gx..]), falloff, open, cfg)
                 }
-                None => grp.cover::<L>(s, &cols, cfg),
+                None => grp.cover::<L>(s, &cols, open, cfg),
             };
-            let ok = L::and(cv.ok, L::below(j as u32, &tg.end[lp..]));
+            let ok = cv.ok;
             if L::bits(ok) == 0 {
                 return;
             }

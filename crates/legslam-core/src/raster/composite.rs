@@ -55,7 +55,8 @@ pub(crate) struct Cover<L: Lanes> {
     pub capped: L::Mask,
 }
 
-/// Gaussian `s` at the pixels `px` of row `y` whose x lies in [lo, hi) (the row's span).
+/// Gaussian `s` at the pixels `px` of row `y` whose x lies in [lo, hi) (the row's span),
+/// among the lanes `open` (the pixels still compositing; the others are never `ok`).
 #[inline(always)]
 pub(crate) fn cover<L: Lanes>(
     s: &Splat,
@@ -63,6 +64,7 @@ pub(crate) fn cover<L: Lanes>(
     px: L,
     lo: Real,
     hi: Real,
+    open: L::Mask,
     cfg: &RasterConfig,
 ) -> Cover<L> {
     let dy = y as Real - s.xy.y;
@@ -80,11 +82,12 @@ pub(crate) fn cover<L: Lanes>(
     // Beyond the cut-off ellipse the alpha test would fail anyway; the margin leaves the exact
     // decision on the ellipse's rim to the alpha test.
     let in_ellipse = L::and_not(sigma.le(L::splat(s.sigma_max + 1e-3)), sigma.lt(zero));
-    let candidates = L::and(inside, in_ellipse);
+    let candidates = L::and(L::and(inside, in_ellipse), open);
     if L::bits(candidates) == 0 {
         // No lane can pass the alpha test (the rows of a small Gaussian's bounding box often
-        // miss its ellipse): every caller skips a group without `ok` lanes, so the
-        // exponential, the costliest step here, is not needed.
+        // miss its ellipse, and deep in a tile's list most pixels have stopped): every caller
+        // skips a group without `ok` lanes, so the exponential, the costliest step here, is
+        // not needed.
         return Cover {
             ok: candidates,
             alpha: zero,
@@ -107,12 +110,18 @@ pub(crate) fn cover<L: Lanes>(
 
 /// [`cover`] from the falloff the forward pass kept for the group (zero in the lanes it did
 /// not cover, whose raw alpha then falls below `alpha_min`, which is positive): the same
-/// decisions and values, without the exponential.
+/// decisions and values in the lanes `open`, without the exponential.
 #[inline(always)]
-pub(crate) fn cover_kept<L: Lanes>(s: &Splat, px: L, falloff: L, cfg: &RasterConfig) -> Cover<L> {
+pub(crate) fn cover_kept<L: Lanes>(
+    s: &Splat,
+    px: L,
+    falloff: L,
+    open: L::Mask,
+    cfg: &RasterConfig,
+) -> Cover<L> {
     let raw = L::splat(s.opacity).mul(falloff);
     Cover {
-        ok: L::splat(cfg.alpha_min).le(raw),
+        ok: L::and(L::splat(cfg.alpha_min).le(raw), open),
         alpha: raw.min(L::splat(cfg.alpha_max)),
         falloff,
         dx: px.sub(L::splat(s.xy.x)),
@@ -134,15 +143,24 @@ pub(crate) struct Group {
 }
 
 impl Group {
-    /// Gaussian `s` over the group's pixels (`cols`: [`TileRect::columns`]).
+    /// Gaussian `s` over the group's pixels (`cols`: [`TileRect::columns`]) that are `open`.
     #[inline(always)]
     pub fn cover<L: Lanes>(
         &self,
         s: &Splat,
         cols: &[Real; TILE + LANES],
+        open: L::Mask,
         cfg: &RasterConfig,
     ) -> Cover<L> {
-        cover(s, self.y, L::load(&cols[self.gx..]), self.lo, self.hi, cfg)
+        cover(
+            s,
+            self.y,
+            L::load(&cols[self.gx..]),
+            self.lo,
+            self.hi,
+            open,
+            cfg,
+        )
     }
 }
 
@@ -307,14 +325,17 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
         let depth = L::splat(s.depth);
         for_each_group(s, r, |g| {
             let lp = g.lp;
-            let c = g.cover::<L>(s, &cols, cfg);
+            // Pixels that have stopped are left out before the exponential. The falloffs
+            // kept are then zero there too, where the backward pass never looks (the pixel's
+            // list ended before this Gaussian).
+            let done = L::load(&acc.done[lp..]);
+            let c = g.cover::<L>(s, &cols, done.le(zero), cfg);
             if let Some(kept) = falloffs.as_mut() {
                 let at = kept.len();
                 kept.resize(at + LANES, 0.0);
                 L::select(c.ok, c.falloff, zero).store(&mut kept[at..]);
             }
-            let done = L::load(&acc.done[lp..]);
-            let live = L::and_not(c.ok, done.gt(zero));
+            let live = c.ok;
             if L::bits(live) == 0 {
                 return;
             }
