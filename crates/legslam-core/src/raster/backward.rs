@@ -567,8 +567,8 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
             for (i, d) in d_conic.into_iter().enumerate() {
                 acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma));
             }
-            L::select(ok, next, t).store(&mut tg.trans[lp..]);
-            L::select(ok, prefix_next, prefix).store(&mut tg.prefix[lp..]);
+            next.store_where(ok, t, &mut tg.trans[lp..]);
+            prefix_next.store_where(ok, prefix, &mut tg.prefix[lp..]);
         });
         if !touched {
             // The slot is zero already (a Gaussian whose ellipse misses the tile's pixels,

@@ -345,7 +345,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             let add = L::and_not(live, stop);
             let stopped = L::bits(stop);
             if stopped != 0 {
-                L::select(stop, one, done).store(&mut acc.done[lp..]);
+                one.store_where(stop, done, &mut acc.done[lp..]);
                 acc.active -= stopped.count_ones() as usize;
             }
             let wgt = L::select(add, c.alpha.mul(t), zero);
@@ -357,7 +357,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
                     .add(wgt.mul(depth))
                     .store(&mut acc.depth[lp..]);
             }
-            L::select(add, next, t).store(&mut acc.trans[lp..]);
+            next.store_where(add, t, &mut acc.trans[lp..]);
             L::set_where(add, j as u32 + 1, &mut acc.end[lp..]);
             if k > 0 {
                 let mut w = [0.0; LANES];
