@@ -162,6 +162,21 @@ pub(crate) trait Lanes: Copy {
     /// `self` where `self > o`, else `o` (as `maxps`).
     fn max(self, o: Self) -> Self;
     fn sqrt(self) -> Self;
+    /// Each lane rounded toward zero, for lanes in [0, 2^24] (where `as u32` is exact).
+    #[inline(always)]
+    fn trunc(self) -> Self {
+        let mut v = [0.0; LANES];
+        self.store(&mut v);
+        // Not `Real::trunc`, an out-of-line call without SSE4.1.
+        Self::load(&v.map(|x| (x as u32) as Real))
+    }
+    /// Lanes holding integers in [0, 2^24] as integers.
+    #[inline(always)]
+    fn to_u32(self) -> [u32; LANES] {
+        let mut v = [0.0; LANES];
+        self.store(&mut v);
+        v.map(|x| x as u32)
+    }
     fn lt(self, o: Self) -> Self::Mask;
     fn le(self, o: Self) -> Self::Mask;
     fn gt(self, o: Self) -> Self::Mask;
@@ -646,6 +661,20 @@ mod avx2 {
         #[inline(always)]
         fn sqrt(self) -> Self {
             unsafe { Self(_mm256_sqrt_ps(self.0)) }
+        }
+        #[inline(always)]
+        fn trunc(self) -> Self {
+            unsafe { Self(_mm256_round_ps::<{ _MM_FROUND_TO_ZERO | _MM_FROUND_NO_EXC }>(self.0)) }
+        }
+        #[inline(always)]
+        fn to_u32(self) -> [u32; LANES] {
+            let mut out = [0; LANES];
+            // SAFETY: `out` holds eight u32s.
+            unsafe {
+                let v = _mm256_cvttps_epi32(self.0);
+                _mm256_storeu_si256(out.as_mut_ptr() as *mut __m256i, v);
+            }
+            out
         }
         #[inline(always)]
         fn lt(self, o: Self) -> __m256 {
@@ -1238,6 +1267,17 @@ mod tests {
             same(a.exp(), pa.exp(), "exp");
             same(a.exp_wide(), pa.exp_wide(), "exp_wide");
             same(a.ln(), pa.ln(), "ln");
+            // Rounding to indices: lanes in [0, 2^24].
+            let (ia, ipa) = {
+                let v = xa.map(|x| match x {
+                    x if x > 0.0 => x.min(16_777_216.0),
+                    x if x < 0.0 => -x * 1e4,
+                    _ => 0.0,
+                });
+                (L::load(&v), Portable(v))
+            };
+            same(ia.trunc(), ipa.trunc(), "trunc");
+            assert_eq!(ia.trunc().to_u32(), ipa.trunc().to_u32(), "to_u32");
             // Rows of every width a Gaussian's arrays have, and a few more; all columns or some.
             let stride: usize = [1, 2, 3, 4, 5, 8, 9, 12, 27, 48][round % 10];
             let width = [stride, stride.div_ceil(2)][round / 10 % 2];
@@ -1282,6 +1322,10 @@ mod tests {
                 L::set_where(m, 77, &mut ua);
                 Portable::set_where(pm, 77, &mut up);
                 assert_eq!(ua, up, "set_where");
+                let (mut fa, mut fp) = (xb, xb);
+                a.store_where(m, b, &mut fa);
+                pa.store_where(pm, pb, &mut fp);
+                assert_eq!(fa.map(f32::to_bits), fp.map(f32::to_bits), "store_where");
                 assert_eq!(
                     L::bits(L::below(9, &ua)),
                     Portable::bits(Portable::below(9, &up))

@@ -5,6 +5,7 @@ pub use glam::{DMat3 as M3, DVec2 as V2, DVec3 as V3};
 #[cfg(not(feature = "f64"))]
 pub use glam::{Mat3 as M3, Vec2 as V2, Vec3 as V3};
 
+use super::lanes::Lanes;
 use crate::Real;
 
 /// A 3x3 matrix from its rows (glam stores columns).
@@ -46,14 +47,15 @@ pub fn sigmoid(x: Real) -> Real {
     1.0 / (1.0 + (-x).exp())
 }
 
-// Rounding to pixel and tile indices by integer conversion: x86-64 without SSE4.1 (the
-// portable wheel's target) calls `floorf` and `ceilf` out of line, and projecting a Gaussian
-// rounds up to twenty times. Each gives exactly what the float expression in its comment gives
-// (NaN and infinities included) for any `n` up to 2^24, where float integers are exact, tested
-// below.
+// Rounding to pixel and tile indices, eight Gaussians at a time (the projection's tile rects
+// and pixel boxes), by truncation of the value clamped to [0, n]: x86-64 without SSE4.1 (the
+// portable wheel's target) calls `floorf` and `ceilf` out of line. Each gives exactly what the
+// float expression in its scalar version's comment gives (NaN and infinities included) for any
+// `n` up to 2^24, where float integers are exact; the scalar versions, by integer conversion,
+// are the plain references the tests below hold both to.
 
 /// `v.floor().max(0.0).min(n as Real) as usize`.
-#[inline]
+#[cfg(test)]
 pub fn floor_in(v: Real, n: usize) -> usize {
     // `as` truncates a non-negative value to its floor, and takes a negative one or NaN to 0.
     (v as usize).min(n)
@@ -61,7 +63,7 @@ pub fn floor_in(v: Real, n: usize) -> usize {
 
 /// `(v.floor() + 1.0).max(0.0).min(n as Real) as usize`: the end of a range whose last entry
 /// is `floor(v)`.
-#[inline]
+#[cfg(test)]
 pub fn floor_end_in(v: Real, n: usize) -> usize {
     if v >= 0.0 {
         (floor_in(v, n) + 1).min(n)
@@ -71,14 +73,38 @@ pub fn floor_end_in(v: Real, n: usize) -> usize {
 }
 
 /// `v.ceil().max(0.0).min(n as Real) as usize`.
-#[inline]
+#[cfg(test)]
 pub fn ceil_in(v: Real, n: usize) -> usize {
     let t = v as usize;
     t.saturating_add(usize::from((t as Real) < v)).min(n)
 }
 
+/// [`floor_in`] of eight lanes (`n` up to 2^24), as integral floats.
+#[inline(always)]
+pub(crate) fn floor_in_lanes<L: Lanes>(v: L, n: Real) -> L {
+    // maxps takes NaN to zero, as the integer conversion does.
+    v.max(L::splat(0.0)).min(L::splat(n)).trunc()
+}
+
+/// [`floor_end_in`] of eight lanes.
+#[inline(always)]
+pub(crate) fn floor_end_in_lanes<L: Lanes>(v: L, n: Real) -> L {
+    let zero = L::splat(0.0);
+    let end = floor_in_lanes(v, n).add(L::splat(1.0)).min(L::splat(n));
+    L::select(zero.le(v), end, zero)
+}
+
+/// [`ceil_in`] of eight lanes.
+#[inline(always)]
+pub(crate) fn ceil_in_lanes<L: Lanes>(v: L, n: Real) -> L {
+    let c = v.max(L::splat(0.0)).min(L::splat(n));
+    let t = c.trunc();
+    L::select(t.lt(c), t.add(L::splat(1.0)), t)
+}
+
 #[cfg(test)]
 mod tests {
+    use super::super::lanes::{Portable, LANES};
     use super::*;
     use crate::rng::Rng;
 
@@ -124,6 +150,25 @@ mod tests {
                     "floor + 1 {v} in {n}"
                 );
                 assert_eq!(ceil_in(v, n), want(v.ceil()), "ceil {v} in {n}");
+            }
+        }
+        // The lane versions against the scalar ones (the vector paths against these in
+        // `lanes`' tests, and the projection's rects in `raster_simd`).
+        for chunk in values.chunks(LANES) {
+            let mut v = [0.0; LANES];
+            v[..chunk.len()].copy_from_slice(chunk);
+            let lanes = Portable::load(&v);
+            for n in [0, 1, 40, 640, 1 << 24] {
+                let to = |x: Portable| x.to_u32().map(|i| i as usize);
+                let each = |f: fn(Real, usize) -> usize| v.map(|x| f(x, n));
+                let nf = n as Real;
+                assert_eq!(to(floor_in_lanes(lanes, nf)), each(floor_in), "floor {v:?}");
+                assert_eq!(
+                    to(floor_end_in_lanes(lanes, nf)),
+                    each(floor_end_in),
+                    "end {v:?}"
+                );
+                assert_eq!(to(ceil_in_lanes(lanes, nf)), each(ceil_in), "ceil {v:?}");
             }
         }
     }

@@ -3,7 +3,10 @@
 use rayon::prelude::*;
 
 use super::forward::Splat;
+use super::lanes::{Lanes, LANES};
+#[cfg(test)]
 use super::math::{floor_end_in, floor_in};
+use super::math::{floor_end_in_lanes, floor_in_lanes};
 use super::TILE;
 use crate::Real;
 
@@ -30,8 +33,9 @@ impl Grid {
 /// Tile rectangle [x0, x1) x [y0, y1) in tile units; empty when culled.
 pub(crate) type Rect = [u32; 4];
 
-/// The tiles whose pixels a Gaussian at `xy` with half extents `ext` may touch.
-#[inline]
+/// The tiles whose pixels a Gaussian at `xy` with half extents `ext` may touch (the plain
+/// version of [`rect_lanes`]).
+#[cfg(test)]
 pub(crate) fn rect(grid: &Grid, x: Real, y: Real, ex: Real, ey: Real) -> Rect {
     let t = TILE as Real;
     let lo = |v: Real, n: usize| floor_in(v / t, n) as u32;
@@ -42,6 +46,25 @@ pub(crate) fn rect(grid: &Grid, x: Real, y: Real, ex: Real, ey: Real) -> Rect {
         hi(x + ex, grid.tiles_x),
         hi(y + ey, grid.tiles_y),
     ]
+}
+
+/// [`rect`] of eight Gaussians at once, as four arrays of lanes ([`lane_rect`] takes one out).
+#[inline(always)]
+pub(crate) fn rect_lanes<L: Lanes>(grid: &Grid, x: L, y: L, ex: L, ey: L) -> [[u32; LANES]; 4] {
+    let t = L::splat(TILE as Real);
+    let (nx, ny) = (grid.tiles_x as Real, grid.tiles_y as Real);
+    [
+        floor_in_lanes(x.sub(ex).div(t), nx).to_u32(),
+        floor_in_lanes(y.sub(ey).div(t), ny).to_u32(),
+        floor_end_in_lanes(x.add(ex).div(t), nx).to_u32(),
+        floor_end_in_lanes(y.add(ey).div(t), ny).to_u32(),
+    ]
+}
+
+/// Lane `l` of [`rect_lanes`] or of the projection's pixel boxes.
+#[inline(always)]
+pub(crate) fn lane_rect(r: &[[u32; LANES]; 4], l: usize) -> Rect {
+    [r[0][l], r[1][l], r[2][l], r[3][l]]
 }
 
 #[inline]
