@@ -152,8 +152,9 @@ mod tests {
                 assert_eq!(ceil_in(v, n), want(v.ceil()), "ceil {v} in {n}");
             }
         }
-        // The lane versions against the scalar ones (the vector paths against these in
-        // `lanes`' tests, and the projection's rects in `raster_simd`).
+        // The lane versions against the scalar ones, through the portable lanes (the vector
+        // paths' `trunc` and `to_u32` against these in `lanes`' tests; the tile rects and
+        // pixel boxes built on them in `project`'s).
         for chunk in values.chunks(LANES) {
             let mut v = [0.0; LANES];
             v[..chunk.len()].copy_from_slice(chunk);
