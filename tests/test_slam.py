@@ -428,6 +428,37 @@ def test_map_coverage_counts_only_where_the_frame_measured_depth(scene):
     assert len(slam.keyframe_frames) <= 3, slam.keyframe_frames
 
 
+def test_the_inline_reference_renders_colour_only_when_asked_and_never_a_changed_map(scene):
+    # The alpha every frame's coverage needs comes from a render without colour; colour and
+    # depth, when the map is tracked against, from a full one: the same images as rendering
+    # the map in full at that pose.
+    seq = open_dataset(scene)
+    slam = SLAM(SLAMConfig(features=False, final_iters=0), seq[0].K, 160, 120)
+    for i in range(4):
+        slam.step(seq[i].rgb, seq[i].depth)
+    inline, pose = slam._mapping, slam.poses[-1]
+    calls = []
+    mapper = inline._mapper
+
+    class Counting:
+        def render(self, *args, **kw):
+            calls.append(kw.get("color", True))
+            return mapper.render(*args, **kw)
+
+    inline._mapper = Counting()
+    _, ref = inline.reference(pose)
+    full = mapper.render(pose, slam.K_track, *slam.track_size)
+    assert calls == [False]
+    assert np.array_equal(ref.alpha, full.alpha) and (full.alpha > 0.5).mean() > 0.3
+    assert np.array_equal(ref.color, full.color) and np.array_equal(ref.depth, full.depth)
+    assert calls == [False, True], "colour and depth come from one full render"
+    _, stale = inline.reference(pose)
+    inline._mapper = mapper
+    inline.after_frame(pose, keyframe=True)
+    with pytest.raises(RuntimeError, match="map changed"):
+        stale.color
+
+
 def test_real_time_makes_keyframes_no_closer_than_its_minimum_gap():
     # A camera that passes `keyframe_translation` every frame: the synchronous map takes every
     # frame, a mapping thread one every `realtime_keyframe_min_gap` frames.

@@ -102,7 +102,7 @@ fn a_brighter_keyframe_is_explained_by_its_exposure() {
         let (rgb, depth, k) = wall(1.3);
         m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
         m.train_window(400, 2).unwrap();
-        let r = m.render(&Pose::identity(), k, false).unwrap();
+        let r = m.render(&Pose::identity(), k, true, false).unwrap();
         let (mean_render, mean_first) = {
             let (a, b) = (wall(1.0).0, &r.color);
             let n = a.len() as f64;

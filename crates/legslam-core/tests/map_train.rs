@@ -149,7 +149,7 @@ fn features_trained_at_a_coarser_level_learn_the_target() {
             first > 0.2 && last < 0.25 * first,
             "offset {offset}: {first} -> {last}"
         );
-        let r = m.render(&Pose::identity(), k, true).unwrap();
+        let r = m.render(&Pose::identity(), k, true, true).unwrap();
         for (x, y) in [(8, 24), (56, 24)] {
             let p = y * 64 + x;
             let (a, b) = (&r.features[p * 4..][..4], &target[p * 4..][..4]);

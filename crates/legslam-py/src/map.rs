@@ -95,11 +95,11 @@ impl From<TrainReport> for PyTrainReport {
     }
 }
 
-/// Images of the map rendered from a pose: colour HxWx3, depth and alpha HxW (float32), and
-/// features HxWxK when asked for (else None).
+/// Images of the map rendered from a pose: colour HxWx3 (None when not asked for), depth and
+/// alpha HxW (float32), and features HxWxK when asked for (else None).
 #[pyclass(module = "legslam._core", name = "MapRender", frozen, get_all)]
 pub struct PyMapRender {
-    color: Py<PyAny>,
+    color: Option<Py<PyAny>>,
     depth: Py<PyAny>,
     alpha: Py<PyAny>,
     features: Option<Py<PyAny>>,
@@ -115,7 +115,9 @@ impl PyMapRender {
                 .unbind())
         };
         Ok(PyMapRender {
-            color: image(&r.color, vec![h, w, 3])?,
+            color: (!r.color.is_empty())
+                .then(|| image(&r.color, vec![h, w, 3]))
+                .transpose()?,
             depth: image(&r.depth, vec![h, w])?,
             alpha: image(&r.alpha, vec![h, w])?,
             features: (!r.features.is_empty())
@@ -226,8 +228,10 @@ impl PyMapper {
         Ok(r.into())
     }
 
-    /// Renders the map from a camera-to-world pose (features when asked and the map has them).
-    #[pyo3(signature = (pose_c2w, k, width, height, features=false))]
+    /// Renders the map from a camera-to-world pose (features when asked and the map has them;
+    /// without `color`, depth and alpha alone, the same values, at less cost).
+    #[pyo3(signature = (pose_c2w, k, width, height, features=false, color=true))]
+    #[allow(clippy::too_many_arguments)] // Python's keyword arguments
     fn render<'py>(
         &self,
         py: Python<'py>,
@@ -236,12 +240,13 @@ impl PyMapper {
         width: i64,
         height: i64,
         features: bool,
+        color: bool,
     ) -> PyResult<PyMapRender> {
         let (width, height) = size(width, height)?;
         let p = pose(pose_c2w, "pose")?;
         let intr = intrinsics(k, width, height)?;
         let inner = &self.inner;
-        let r = pool::call(&self.pool, py, || inner.render(&p, intr, features))?;
+        let r = pool::call(&self.pool, py, || inner.render(&p, intr, color, features))?;
         PyMapRender::new(py, &r)
     }
 

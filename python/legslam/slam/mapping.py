@@ -19,7 +19,7 @@ from typing import Optional
 
 import numpy as np
 
-__all__ = ["InlineMapping", "ThreadedMapping"]
+__all__ = ["InlineMapping", "MapReference", "ThreadedMapping"]
 
 #: The mapping thread renders the tracker's reference after every this-many-th batch, and after
 #: every batch while the map's coverage counts for keyframes (the newest keyframe has had its
@@ -41,9 +41,12 @@ class InlineMapping:
         #: The engine's report of every training call.
         self.stats: list = []
         self.reference_s = 0.0
+        #: Counts the calls that change the map (a `MapReference` holds while it stays).
+        self.version = 0
 
     def add_keyframe(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, pose: np.ndarray) -> int:
         """Adds a keyframe (colour float32 in [0, 1]); returns its id."""
+        self.version += 1
         return self._mapper.add_keyframe(rgb, depth, K, pose)[0]
 
     def set_features(self, kf_id: int, grid: np.ndarray) -> None:
@@ -51,15 +54,18 @@ class InlineMapping:
 
     def correct_keyframes(self, corrections: np.ndarray) -> None:
         """Moves keyframe k by corrections[k] and the Gaussians it made with it."""
+        self.version += 1
         self._mapper.correct_keyframes(corrections)
 
     def after_frame(self, pose: np.ndarray, keyframe: bool) -> None:
         """A frame was tracked at `pose`: train."""
+        self.version += 1
         self.stats.append(self._mapper.train(self._iters[keyframe]))
 
     def reference(self, predicted: np.ndarray) -> tuple:
-        """(pose, render at the tracking size) to track against: the map at `predicted`."""
-        return predicted, self._mapper.render(predicted, self._K_track, *self._track_size)
+        """(pose, render at the tracking size) to track against: the map at `predicted`, its
+        colour and depth rendered only when asked for (`MapReference`)."""
+        return predicted, MapReference(self, predicted)
 
     def keeps_up(self) -> bool:
         """Whether the newest keyframe has had its iterations: always, inline."""
@@ -75,6 +81,35 @@ class InlineMapping:
 
     def stop(self) -> None:
         """Nothing runs in the background: the mapper is the caller's already."""
+
+
+class MapReference:
+    """The map rendered at a pose: alpha at once, colour and depth on first use. Every frame
+    needs the alpha (how much of the view the map covers), the colour only when the frame fails
+    to align with the last one (none of 1000 synchronous 7-Scenes frames did). Without colour
+    the render skips the Gaussians' SH colour and its compositing: the same alpha, ~11% less
+    time. Valid until `mapping` changes the map (the tracking of one frame does not)."""
+
+    def __init__(self, mapping: "InlineMapping", pose: np.ndarray):
+        self._mapping, self._version = mapping, mapping.version
+        self._args = (pose, mapping._K_track, *mapping._track_size)
+        self.alpha = mapping._mapper.render(*self._args, color=False).alpha
+        self._full = None
+
+    @property
+    def color(self) -> np.ndarray:
+        return self._render().color
+
+    @property
+    def depth(self) -> np.ndarray:
+        return self._render().depth
+
+    def _render(self):
+        if self._full is None:
+            if self._mapping.version != self._version:
+                raise RuntimeError("the map changed since this reference's alpha was rendered")
+            self._full = self._mapping._mapper.render(*self._args)
+        return self._full
 
 
 class ThreadedMapping:

@@ -233,14 +233,16 @@ impl Mapper {
         }
     }
 
-    /// Renders the map from a camera-to-world pose.
+    /// Renders the map from a camera-to-world pose. Without `color`, depth and alpha only
+    /// (the same bits as with it): the Gaussians' colours are neither evaluated nor composited.
     pub fn render(
         &self,
         pose: &Pose,
         intr: Intrinsics,
+        color: bool,
         features: bool,
     ) -> Result<Rendered, String> {
-        let opts = self.options(true, features && self.map.num_features > 0);
+        let opts = self.options(color, features && self.map.num_features > 0);
         render(&self.map.view(), &camera(pose, intr)?, &opts)
     }
 

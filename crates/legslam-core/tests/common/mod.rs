@@ -3,8 +3,8 @@
 
 use legslam_core::camera::{se3, Intrinsics, Pose};
 use legslam_core::raster::{
-    backward, render, sh, Camera, Gaussians, Gradients, ImageGrads, RasterConfig, RenderOptions,
-    Rendered,
+    backward, render, sh, vector_paths, Camera, Gaussians, Gradients, ImageGrads, RasterConfig,
+    RenderOptions, Rendered, Simd,
 };
 use legslam_core::Real;
 use nalgebra::{Matrix2, Matrix3, Quaternion, Rotation3, UnitQuaternion, Vector3};
@@ -140,6 +140,26 @@ pub fn random_scene(
         s.push(&mut rng, [x, y, z], ls, logit);
     }
     s
+}
+
+/// Calls `f(seed, scene, sh_degree, simd)` for the scenes the path tests share: per seed 0-3 a
+/// random scene (SH degree 3) and a hard one (degree 1), at sizes that leave partial tiles and
+/// with 0, 5, 8 and 19 feature channels, through every compositing implementation the machine
+/// has (the portable one first).
+pub fn each_scene_and_path(mut f: impl FnMut(u64, &Scene, usize, Simd)) {
+    let simds: Vec<Simd> = [Simd::Portable].into_iter().chain(vector_paths()).collect();
+    for seed in 0..4u64 {
+        let (w, h) = [(64, 48), (37, 29), (100, 17), (16, 16)][seed as usize];
+        let k = [0, 5, 8, 19][seed as usize];
+        for (s, deg) in [
+            (random_scene(seed, 400, w, h, 3, k), 3),
+            (hard_scene(seed + 10, w, h, 1, k), 1),
+        ] {
+            for &simd in &simds {
+                f(seed, &s, deg, simd);
+            }
+        }
+    }
 }
 
 /// The hard cases: near the camera, partly off-screen (with the Jacobian clamped), nearly
