@@ -4,12 +4,13 @@
 //! error; against the fused surface the noise of many frames averages out and a camera that
 //! comes back meets what it saw before.
 //!
-//! Voxels live in blocks of 8^3 allocated around measured surfaces only (a hash map from block
-//! coordinates), so memory follows the surface area seen, not the volume. Values are signed
-//! distances along the optical axis, divided by the truncation distance and clamped to [-1, 1],
-//! averaged over frames with a weight capped at `max_weight` (so the surface can still move).
+//! Voxels live in blocks of 8^3 allocated around measured surfaces only, so memory follows the
+//! surface area seen, not the volume; a hash map from chunk coordinates finds a chunk's table
+//! of its 4^3 blocks. Values are signed distances along the optical axis, divided by the
+//! truncation distance and clamped to [-1, 1], averaged over frames with a weight capped at
+//! `max_weight` (so the surface can still move).
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
 
 use glam::{Mat3, Vec3};
@@ -20,8 +21,12 @@ use crate::camera::{se3, Intrinsics, Pose};
 /// Voxels along a block's side (`locate` divides by shifting).
 const SIDE: usize = 8;
 const BLOCK_VOXELS: usize = SIDE * SIDE * SIDE;
-/// Blocks along a chunk's side: the ray-cast crosses empty space a chunk at a time.
+/// Blocks along a chunk's side (`chunk_key` divides by shifting): the ray-cast crosses empty
+/// space a chunk at a time.
 const CHUNK: i32 = 4;
+const CHUNK_BLOCKS: usize = (CHUNK * CHUNK * CHUNK) as usize;
+/// A chunk table's entry for a block not allocated.
+const NO_BLOCK: u32 = u32::MAX;
 
 /// Volume settings.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -145,17 +150,22 @@ impl Hasher for KeyHasher {
 }
 
 type Index = HashMap<Key, u32, BuildHasherDefault<KeyHasher>>;
-type Chunks = HashSet<Key, BuildHasherDefault<KeyHasher>>;
+
+/// A chunk looked up: its key and its table's number (None: no block allocated in it).
+type ChunkCache = (Key, Option<u32>);
 
 /// The fused volume.
 pub struct Tsdf {
     cfg: TsdfConfig,
+    /// The chunks holding at least one block, by chunk key: each one's table in `chunks`.
     index: Index,
+    /// Per chunk, its blocks' numbers ([`NO_BLOCK`] where not allocated), indexed by
+    /// [`block_in_chunk`]. Against a hash map of blocks: one lookup a chunk a ray crosses
+    /// instead of one a block, and whether a chunk is empty comes with it.
+    chunks: Vec<[u32; CHUNK_BLOCKS]>,
     blocks: Vec<Block>,
     /// Each block's coordinates (in blocks).
     coords: Vec<[i32; 3]>,
-    /// Chunks holding at least one block.
-    chunks: Chunks,
 }
 
 /// A camera for the volume's loops: world-to-camera rotation and translation, the centre and
@@ -218,9 +228,9 @@ impl Tsdf {
         Ok(Tsdf {
             cfg,
             index: Index::default(),
+            chunks: Vec::new(),
             blocks: Vec::new(),
             coords: Vec::new(),
-            chunks: Chunks::default(),
         })
     }
 
@@ -233,9 +243,10 @@ impl Tsdf {
         self.blocks.len()
     }
 
-    /// Bytes held by the voxels.
+    /// Bytes held by the voxels and the chunk tables.
     pub fn memory_bytes(&self) -> usize {
         self.blocks.len() * std::mem::size_of::<Block>()
+            + self.chunks.len() * std::mem::size_of::<[u32; CHUNK_BLOCKS]>()
     }
 
     /// Block and voxel of a world point, in voxel units `g = p / voxel`.
@@ -294,16 +305,20 @@ impl Tsdf {
         keys.dedup();
         let mut touched = vec![false; self.blocks.len()];
         for kb in keys {
-            let next = self.blocks.len() as u32;
-            let i = *self.index.entry(kb).or_insert(next) as usize;
-            if i == self.blocks.len() {
-                let b = unkey(kb);
+            let b = unkey(kb);
+            let chunks = &mut self.chunks;
+            let c = *self.index.entry(chunk_key(b)).or_insert_with(|| {
+                chunks.push([NO_BLOCK; CHUNK_BLOCKS]);
+                (chunks.len() - 1) as u32
+            });
+            let slot = &mut chunks[c as usize][block_in_chunk(b)];
+            if *slot == NO_BLOCK {
+                *slot = self.blocks.len() as u32;
                 self.blocks.push(Block::empty());
                 self.coords.push(b);
-                self.chunks.insert(chunk_key(b));
                 touched.push(true);
             } else {
-                touched[i] = true;
+                touched[*slot as usize] = true;
             }
         }
         let voxel = self.cfg.voxel as f32;
@@ -385,41 +400,56 @@ impl Tsdf {
     }
 
     /// Quantised distance of the voxel holding voxel-unit point `g` ([`UNSEEN`] if no frame
-    /// observed it), if its block is allocated. `cache` holds the last block looked up.
-    fn voxel_at(&self, g: Vec3, cache: &mut (Key, Option<u32>)) -> Option<i16> {
+    /// observed it), if its block is allocated. `cache` holds the last chunk looked up: after
+    /// the call `g`'s, whose table tells an unallocated block from empty space.
+    fn voxel_at(&self, g: Vec3, cache: &mut ChunkCache) -> Option<i16> {
         let (b, j) = Self::locate(g);
-        let kb = key(b);
-        if cache.0 != kb {
-            *cache = (kb, self.index.get(&kb).copied());
+        self.block(b, cache).map(|i| self.blocks[i].sdf[j])
+    }
+
+    /// The number of block `b` if it is allocated, its chunk looked up in `cache` (and left
+    /// there) unless already there.
+    #[inline]
+    fn block(&self, b: [i32; 3], cache: &mut ChunkCache) -> Option<usize> {
+        let kc = chunk_key(b);
+        if cache.0 != kc {
+            *cache = (kc, self.index.get(&kc).copied());
         }
-        Some(self.blocks[cache.1? as usize].sdf[j])
+        self.block_in(b, cache.1)
+    }
+
+    /// The number of block `b` in chunk table `chunk` (b's), if both exist.
+    #[inline]
+    fn block_in(&self, b: [i32; 3], chunk: Option<u32>) -> Option<usize> {
+        let i = self.chunks[chunk? as usize][block_in_chunk(b)];
+        (i != NO_BLOCK).then_some(i as usize)
     }
 
     /// Trilinear distance at voxel-unit point `g` (voxel centres at half-integers); `None`
     /// where any of the eight voxels is unobserved.
-    fn trilinear(&self, g: Vec3, cache: &mut (Key, Option<u32>)) -> Option<f32> {
+    fn trilinear(&self, g: Vec3, cache: &mut ChunkCache) -> Option<f32> {
         let a = g - 0.5;
         let v = [floor(a.x), floor(a.y), floor(a.z)];
         let f = a - Vec3::new(v[0] as f32, v[1] as f32, v[2] as f32);
-        // The corners lie in one block, or in two to eight where they straddle boundaries:
-        // each block is looked up once (corners alternate between blocks).
+        // The corners lie in one chunk, or in two to eight where they straddle boundaries:
+        // each chunk is looked up once (corners alternate between chunks).
         let mut seen = [*cache; 9];
         let mut n_seen = 1;
         let mut acc = 0.0;
         for c in 0..8 {
             let o = [c & 1, (c >> 1) & 1, c >> 2];
             let (b, j) = Self::split([v[0] + o[0], v[1] + o[1], v[2] + o[2]]);
-            let kb = key(b);
-            let slot = match seen[..n_seen].iter().find(|s| s.0 == kb) {
+            let kc = chunk_key(b);
+            let chunk = match seen[..n_seen].iter().find(|s| s.0 == kc) {
                 Some(s) => s.1,
                 None => {
-                    let s = (kb, self.index.get(&kb).copied());
+                    let s = (kc, self.index.get(&kc).copied());
                     seen[n_seen] = s;
                     n_seen += 1;
                     s.1
                 }
             };
-            let s = self.blocks[slot? as usize].sdf[j];
+            let s = self.blocks[self.block_in(b, chunk)?].sdf[j];
             if s == UNSEEN {
                 return None;
             }
@@ -567,8 +597,8 @@ impl Tsdf {
             match self.voxel_at(g, &mut cache) {
                 None if !fine => {
                     prev = None;
-                    let (b, _) = Self::locate(g);
-                    let cell = if self.chunks.contains(&chunk_key(b)) {
+                    // `cache` holds g's chunk: a missing block in it, or none of its blocks.
+                    let cell = if cache.1.is_some() {
                         SIDE
                     } else {
                         SIDE * CHUNK as usize
@@ -639,7 +669,15 @@ fn floor(x: f32) -> i32 {
 
 /// The chunk holding block `b`.
 fn chunk_key(b: [i32; 3]) -> Key {
-    key(b.map(|c| c.div_euclid(CHUNK)))
+    const { assert!(CHUNK == 4) };
+    // Shifting floors towards minus infinity.
+    key(b.map(|c| c >> 2))
+}
+
+/// Block `b`'s entry in its chunk's table.
+fn block_in_chunk(b: [i32; 3]) -> usize {
+    let l = b.map(|c| (c & (CHUNK - 1)) as usize);
+    l[0] + CHUNK as usize * (l[1] + CHUNK as usize * l[2])
 }
 
 /// The ray parameter at which voxel-unit point `g = g0 + t g_dir` leaves its cell of the grid
