@@ -517,9 +517,8 @@ impl Tsdf {
         }
         let Some((near, cell)) = near else {
             out.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
-                for (u, o) in row.iter_mut().enumerate() {
-                    *o = self.cast(&view, u as f32, v as f32, (0.0, f32::INFINITY));
-                }
+                let rays = (0..w).map(|u| (u, u as f32, v as f32, (0.0, f32::INFINITY)));
+                self.cast_many(&view, rays, row);
             });
             return Ok(());
         };
@@ -540,15 +539,13 @@ impl Tsdf {
             .for_each(|(band, rows)| {
                 let v0 = band * cell;
                 let n_rows = rows.len() / w;
-                for (i, o) in rows.iter_mut().enumerate() {
+                rows.fill(0.0);
+                let rays = (0..rows.len()).filter_map(|i| {
                     let (u, v) = (i % w, v0 + i / w);
                     let d = near[v * w + u];
-                    *o = if ok(d) {
-                        self.cast(&view, u as f32, v as f32, (d - two_trunc, f32::INFINITY))
-                    } else {
-                        0.0
-                    };
-                }
+                    ok(d).then_some((i, u as f32, v as f32, (d - two_trunc, f32::INFINITY)))
+                });
+                self.cast_many(&view, rays, rows);
                 let Some(range) = measured else { return };
                 for u0 in (0..w).step_by(cell) {
                     let n_cols = cell.min(w - u0);
@@ -569,83 +566,158 @@ impl Tsdf {
         Ok(())
     }
 
-    /// March along the ray through pixel coordinates (u, v) over samples a voxel apart
-    /// (`t = min_depth + n step`): a block at a time through unallocated space and by the
-    /// distance the volume guarantees free inside blocks; at the first crossing from in front
-    /// of a surface to behind it, back over every sample since the last one in front, so that
-    /// what is found is what a march over every sample finds. The crossing is interpolated
-    /// between the trilinear distances at its two samples. The march covers the samples at
-    /// depths within `(from, to)`.
-    fn cast(&self, view: &View, u: f32, v: f32, (from, to): (f32, f32)) -> f32 {
-        let inv_voxel = (1.0 / self.cfg.voxel) as f32;
-        let dir = view.ray(u, v);
-        // Per unit of t, in voxels along the ray.
-        let g_dir = dir * inv_voxel;
-        let g0 = view.centre * inv_voxel;
-        let step = self.cfg.voxel as f32 / dir.length();
-        let trunc_voxels = (self.cfg.truncation / self.cfg.voxel) as f32;
-        let (t_min, t_max) = (self.cfg.min_depth as f32, self.cfg.max_depth as f32);
-        let last = ((t_max.min(to) - t_min) / step).floor() as usize;
-        let mut cache = (Key::MAX, None);
-        // The last sample in front of a surface: (n, normalised distance).
-        let mut prev: Option<(usize, f32)> = None;
-        let mut fine = false;
-        let mut n = (-floor(-(from - t_min) / step)).max(0) as usize;
-        while n <= last {
-            let t = t_min + n as f32 * step;
-            let g = g0 + t * g_dir;
-            match self.voxel_at(g, &mut cache) {
-                None if !fine => {
-                    prev = None;
-                    // `cache` holds g's chunk: a missing block in it, or none of its blocks.
-                    let cell = if cache.1.is_some() {
-                        SIDE
-                    } else {
-                        SIDE * CHUNK as usize
-                    };
-                    let exit = cell_exit(g, g_dir, t, cell as f32);
-                    n = (n + 1).max(-floor(-(exit - t_min) / step) as usize);
-                    continue;
-                }
-                Some(s) if s > 0 => {
-                    let f = dequantise(s);
-                    prev = Some((n, f));
-                    n += if fine {
-                        1
-                    } else {
-                        ((0.8 * f * trunc_voxels) as usize).max(1)
-                    };
-                    continue;
-                }
-                Some(s) if s != UNSEEN => match prev {
-                    Some((np, _)) if !fine && np + 1 < n => {
-                        // Skipped samples may hold the first crossing: walk them.
-                        fine = true;
-                        n = np + 1;
-                        continue;
-                    }
-                    Some((np, fp)) => {
-                        let tp = t_min + np as f32 * step;
-                        let fp = self.trilinear(g0 + tp * g_dir, &mut cache).unwrap_or(fp);
-                        let f = self.trilinear(g, &mut cache).unwrap_or(dequantise(s));
-                        let ts = if fp > f {
-                            tp + (t - tp) * fp / (fp - f)
-                        } else {
-                            t
-                        };
-                        return ts.clamp(tp, t);
-                    }
-                    // Behind a surface from the start, or seen from its back: no surface in
-                    // front.
-                    None if s < 0 => return 0.0,
-                    None => {}
-                },
-                // Unallocated (while walking back) or unobserved.
-                _ => prev = None,
+    /// The depth [`March`] finds along the ray through pixel (u, v), within `(from, to)`.
+    fn cast(&self, view: &View, u: f32, v: f32, range: (f32, f32)) -> f32 {
+        let mut m = March::new(self, view, u, v, range);
+        loop {
+            if let Some(d) = m.advance(self) {
+                return d;
             }
-            n += 1;
         }
-        0.0
+    }
+
+    /// The depth [`March`] finds along each of `rays` ((index into `out`, u, v, range)), into
+    /// `out`. Several rays march at once, a sample of each in turn: each of a ray's samples
+    /// waits on the one before (how far it steps depends on the voxel read), and the samples
+    /// of other rays fill that wait.
+    fn cast_many(
+        &self,
+        view: &View,
+        mut rays: impl Iterator<Item = (usize, f32, f32, (f32, f32))>,
+        out: &mut [f32],
+    ) {
+        const IN_FLIGHT: usize = 4;
+        let mut flight: [Option<(usize, March)>; IN_FLIGHT] = [None; IN_FLIGHT];
+        loop {
+            let mut busy = false;
+            for slot in &mut flight {
+                if slot.is_none() {
+                    *slot = rays
+                        .next()
+                        .map(|(i, u, v, range)| (i, March::new(self, view, u, v, range)));
+                }
+                if let Some((i, m)) = slot {
+                    busy = true;
+                    if let Some(d) = m.advance(self) {
+                        out[*i] = d;
+                        *slot = None;
+                    }
+                }
+            }
+            if !busy {
+                return;
+            }
+        }
+    }
+}
+
+/// A march along a ray over samples a voxel apart (`t = min_depth + n step`): a block at a
+/// time through unallocated space and by the distance the volume guarantees free inside
+/// blocks; at the first crossing from in front of a surface to behind it, back over every
+/// sample since the last one in front, so that what is found is what a march over every sample
+/// finds. The crossing is interpolated between the trilinear distances at its two samples.
+/// The march covers the samples at depths within `(from, to)`.
+#[derive(Clone, Copy)]
+struct March {
+    /// The camera centre and the ray's direction per unit of t, in voxels.
+    g0: Vec3,
+    g_dir: Vec3,
+    /// t from one sample to the next.
+    step: f32,
+    t_min: f32,
+    trunc_voxels: f32,
+    /// The next sample and the last one to take.
+    n: usize,
+    last: usize,
+    /// The last sample in front of a surface: (n, normalised distance).
+    prev: Option<(usize, f32)>,
+    /// Walking every sample (back over skipped ones).
+    fine: bool,
+    cache: ChunkCache,
+}
+
+impl March {
+    fn new(tsdf: &Tsdf, view: &View, u: f32, v: f32, (from, to): (f32, f32)) -> March {
+        let cfg = &tsdf.cfg;
+        let inv_voxel = (1.0 / cfg.voxel) as f32;
+        let dir = view.ray(u, v);
+        let step = cfg.voxel as f32 / dir.length();
+        let (t_min, t_max) = (cfg.min_depth as f32, cfg.max_depth as f32);
+        March {
+            g0: view.centre * inv_voxel,
+            g_dir: dir * inv_voxel,
+            step,
+            t_min,
+            trunc_voxels: (cfg.truncation / cfg.voxel) as f32,
+            n: (-floor(-(from - t_min) / step)).max(0) as usize,
+            last: ((t_max.min(to) - t_min) / step).floor() as usize,
+            prev: None,
+            fine: false,
+            cache: (Key::MAX, None),
+        }
+    }
+
+    /// Takes the next sample: the depth found (0 for none) once the march ends.
+    #[inline]
+    fn advance(&mut self, tsdf: &Tsdf) -> Option<f32> {
+        let n = self.n;
+        if n > self.last {
+            return Some(0.0);
+        }
+        let t = self.t_min + n as f32 * self.step;
+        let g = self.g0 + t * self.g_dir;
+        match tsdf.voxel_at(g, &mut self.cache) {
+            None if !self.fine => {
+                self.prev = None;
+                // `cache` holds g's chunk: a missing block in it, or none of its blocks.
+                let cell = if self.cache.1.is_some() {
+                    SIDE
+                } else {
+                    SIDE * CHUNK as usize
+                };
+                let exit = cell_exit(g, self.g_dir, t, cell as f32);
+                self.n = (n + 1).max(-floor(-(exit - self.t_min) / self.step) as usize);
+                return None;
+            }
+            Some(s) if s > 0 => {
+                let f = dequantise(s);
+                self.prev = Some((n, f));
+                self.n += if self.fine {
+                    1
+                } else {
+                    ((0.8 * f * self.trunc_voxels) as usize).max(1)
+                };
+                return None;
+            }
+            Some(s) if s != UNSEEN => match self.prev {
+                Some((np, _)) if !self.fine && np + 1 < n => {
+                    // Skipped samples may hold the first crossing: walk them.
+                    self.fine = true;
+                    self.n = np + 1;
+                    return None;
+                }
+                Some((np, fp)) => {
+                    let tp = self.t_min + np as f32 * self.step;
+                    let gp = self.g0 + tp * self.g_dir;
+                    let fp = tsdf.trilinear(gp, &mut self.cache).unwrap_or(fp);
+                    let f = tsdf.trilinear(g, &mut self.cache).unwrap_or(dequantise(s));
+                    let ts = if fp > f {
+                        tp + (t - tp) * fp / (fp - f)
+                    } else {
+                        t
+                    };
+                    return Some(ts.clamp(tp, t));
+                }
+                // Behind a surface from the start, or seen from its back: no surface in
+                // front.
+                None if s < 0 => return Some(0.0),
+                None => {}
+            },
+            // Unallocated (while walking back) or unobserved.
+            _ => self.prev = None,
+        }
+        self.n += 1;
+        None
     }
 }
 
