@@ -527,9 +527,7 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;
-                    let gfp = &gf[(p0 + l) * k..][..k];
-                    L::axpy(feat_slot, w[l], gfp);
-                    dots[l] = L::dot(gfp, f);
+                    dots[l] = L::axpy_dot(feat_slot, w[l], &gf[(p0 + l) * k..][..k], f);
                 }
                 x_j = x_j.add(L::load(&dots));
             }

@@ -229,6 +229,28 @@ pub(crate) trait Lanes: Copy {
     /// The dot product of two equally long slices: eight partial sums, then `hsum`, then the
     /// tail in order.
     fn dot(a: &[Real], b: &[Real]) -> Real;
+    /// `axpy(out, w, g)` and `dot(g, f)` in one pass over `g` (the same bits as the two).
+    #[inline(always)]
+    fn axpy_dot(out: &mut [Real], w: Real, g: &[Real], f: &[Real]) -> Real {
+        let n = out.len().min(g.len()).min(f.len());
+        let full = n - n % LANES;
+        let (wv, mut acc) = (Self::splat(w), Self::splat(0.0));
+        for ((o, g), f) in out[..full]
+            .chunks_exact_mut(LANES)
+            .zip(g[..full].chunks_exact(LANES))
+            .zip(f[..full].chunks_exact(LANES))
+        {
+            let gv = Self::load(g);
+            Self::load(o).add(wv.mul(gv)).store(o);
+            acc = acc.add(gv.mul(Self::load(f)));
+        }
+        let mut tail = 0.0;
+        for ((o, g), f) in out[full..n].iter_mut().zip(&g[full..n]).zip(&f[full..n]) {
+            *o += w * g;
+            tail += g * f;
+        }
+        acc.hsum() + tail
+    }
 }
 
 /// The polynomial e^x and ln x every implementation evaluates (Cephes' expf: x = n ln2 + r, a
@@ -1343,6 +1365,18 @@ mod tests {
             Portable::axpy(&mut op, xa[0], &va);
             let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&oa), bits(&op), "axpy");
+            // The fused pass against the two it stands for, each on the portable lanes.
+            let vf: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
+            let mut of = vb.clone();
+            let d = L::axpy_dot(&mut of, xa[1], &va, &vf);
+            let mut op = vb.clone();
+            Portable::axpy(&mut op, xa[1], &va);
+            assert_eq!(bits(&of), bits(&op), "axpy_dot's axpy");
+            assert_eq!(
+                d.to_bits(),
+                Portable::dot(&va, &vf).to_bits(),
+                "axpy_dot's dot"
+            );
         }
     }
 
