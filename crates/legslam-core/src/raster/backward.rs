@@ -10,13 +10,13 @@
 use rayon::prelude::*;
 
 use super::composite::{
-    cover_kept, for_each_group, prefetch, prefetch_ahead, TileRect, TILE_LANES,
+    cover_kept, for_each_group, prefetch, prefetch_ahead, Sampling, TileRect, TILE_LANES,
 };
 use super::forward::{split_chunks, Layer};
 use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{V2, V3};
 use super::project::View;
-use super::project_backward::{backward_task, conic_to_cov_grad, BlockGrads, ScreenGrads};
+use super::project_backward::{backward_task, BlockGrads, ScreenGrads};
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
 use crate::optim::rows_in;
@@ -34,7 +34,11 @@ mod slot {
     pub const DEPTH: usize = 9;
     /// Sum of blending weights alpha * T (not a gradient: how much of the image it makes).
     pub const WEIGHT: usize = 10;
-    pub const COUNT: usize = 11;
+    /// The feature loss's share of X and Y (which hold the other terms' alone: densification
+    /// reads those).
+    pub const FEATURE_X: usize = 11;
+    pub const FEATURE_Y: usize = 12;
+    pub const COUNT: usize = 13;
 }
 const SLOTS: usize = slot::COUNT;
 
@@ -62,14 +66,16 @@ fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> 
 /// megabytes per iteration.
 #[derive(Default)]
 pub struct BackwardScratch {
-    main: LayerScratch,
-    coarse: LayerScratch,
+    layer: LayerScratch,
 }
 
-/// One layer's per-pair gradients, and each Gaussian's pairs.
+/// The layer's per-pair gradients, and each Gaussian's pairs.
 #[derive(Default)]
 struct LayerScratch {
     pair_grads: Vec<Real>,
+    /// Per pair: whether its feature slots hold gradients (otherwise they are stale, and
+    /// read as zeros): most pairs of a layer whose features are sampled reach no feature pixel.
+    pair_has_features: Vec<bool>,
     /// Gaussian i's pairs are `g_pairs[g_start[i]..g_start[i + 1]]`, in tile order.
     g_start: Vec<usize>,
     g_pairs: Vec<u32>,
@@ -125,46 +131,18 @@ pub fn backward_into(
         opts.features && k > 0,
         feature_len,
     )?;
-    let cfg = &opts.config;
-    let coarse = !st.coarse.splats.is_empty();
-
-    // The main layer, then the features' own.
-    let main = TileJob {
+    let job = TileJob {
         layer: &st.main,
         features: g.features,
-        rendered: [&r.color, &r.depth, if coarse { &[] } else { &r.features }],
-        grads: ImageGrads {
-            features: if coarse { None } else { grads.features },
-            ..*grads
-        },
-        k: if coarse { 0 } else { k },
-        colour: true,
-        cfg,
+        rendered: [&r.color, &r.depth, &r.features],
+        grads: *grads,
+        k,
+        sampling: st.sampling,
+        cfg: &opts.config,
         kept_falloffs: opts.for_backward,
     };
-    walk_layer(opts.simd, &main, &mut scratch.main);
-    if coarse {
-        let features = TileJob {
-            layer: &st.coarse,
-            features: g.features,
-            rendered: [&[], &[], &r.features],
-            grads: ImageGrads {
-                features: grads.features,
-                ..Default::default()
-            },
-            k,
-            colour: false,
-            cfg,
-            kept_falloffs: opts.for_backward,
-        };
-        walk_layer(opts.simd, &features, &mut scratch.coarse);
-    }
-    let scale = opts.feature_scale as Real;
-    let strides = [SLOTS + main.k, SLOTS + k];
-    let layers = [&st.main, &st.coarse];
-    let layer_scratch = [&scratch.main, &scratch.coarse];
-    // The layers this pass walked: the main one, and the features' own when coarser.
-    let layers_walked = 1 + usize::from(coarse);
+    walk_layer(opts.simd, &job, &mut scratch.layer);
+    let (ls, stride) = (&scratch.layer, SLOTS + k);
 
     // Only the rows of Gaussians on screen are written (every value of each); the others keep
     // what they held, stale (zeros in new arrays): no pass reads them (see `Gradients::rows`),
@@ -176,11 +154,7 @@ pub fn backward_into(
     for (v, w) in out.arrays_mut().into_iter().zip(widths) {
         v.resize(n * w, 0.0);
     }
-    let on_screen = |i: usize| {
-        layers
-            .iter()
-            .any(|l| l.rects.get(i).is_some_and(|r| rect_area(r) > 0))
-    };
+    let on_screen = |i: usize| st.main.rects.get(i).is_some_and(|r| rect_area(r) > 0);
     let rows: Vec<u32> = (0..n as u32).filter(|&i| on_screen(i as usize)).collect();
     out.pose = [0.0; 6];
     const CHUNK: usize = 1024;
@@ -207,53 +181,48 @@ pub fn backward_into(
             let mut on = vec![false; len];
             let mine = rows_in(&rows, first, CHUNK);
             for (at, &i) in mine.iter().enumerate() {
-                // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
+                // A Gaussian's pairs lie anywhere in the per-pair buffer (in tile order).
                 if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
-                    for (ls, stride) in layer_scratch.iter().zip(strides).take(layers_walked) {
-                        for &pr in ls.pairs(ahead as usize) {
-                            prefetch(&ls.pair_grads[pr as usize * stride..][..stride]);
-                        }
+                    for &pr in ls.pairs(ahead as usize) {
+                        let pr = pr as usize;
+                        let len = if ls.pair_has_features[pr] {
+                            stride
+                        } else {
+                            SLOTS
+                        };
+                        prefetch(&ls.pair_grads[pr * stride..][..len]);
                     }
                 }
                 let (i, li) = (i as usize, i as usize - first);
-                // Each layer's pairs, in tile order, so that the sums are deterministic.
-                let mut sums = [ScreenGrads::default(); 2];
-                let mut weight = 0.0;
+                // The pairs in tile order, so that the sums are deterministic.
+                let mut sg = ScreenGrads::default();
+                let (mut weight, mut feature_xy) = (0.0, V2::ZERO);
                 let feat_row = &mut gfeat[li * kf..][..kf];
                 feat_row.fill(0.0);
-                for (l, sg) in sums.iter_mut().enumerate().take(layers_walked) {
-                    let ls = layer_scratch[l];
-                    let stride = strides[l];
-                    for &pr in ls.pairs(i) {
-                        let s = &ls.pair_grads[pr as usize * stride..][..stride];
-                        let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
-                        sg.xy += V2::new(s[slot::X], s[slot::Y]);
-                        sg.conic += v3(slot::CONIC);
-                        sg.opacity += s[slot::OPACITY];
-                        sg.color += v3(slot::COLOR);
-                        sg.depth += s[slot::DEPTH];
-                        if l == 0 {
-                            weight += s[slot::WEIGHT];
-                        }
+                for &pr in ls.pairs(i) {
+                    let pr = pr as usize;
+                    let s = &ls.pair_grads[pr * stride..][..stride];
+                    let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
+                    sg.xy += V2::new(s[slot::X], s[slot::Y]);
+                    sg.conic += v3(slot::CONIC);
+                    sg.opacity += s[slot::OPACITY];
+                    sg.color += v3(slot::COLOR);
+                    sg.depth += s[slot::DEPTH];
+                    weight += s[slot::WEIGHT];
+                    feature_xy += V2::new(s[slot::FEATURE_X], s[slot::FEATURE_Y]);
+                    if ls.pair_has_features[pr] {
                         for (o, v) in feat_row.iter_mut().zip(&s[SLOTS..]) {
                             *o += v;
                         }
                     }
                 }
-                let [mut sg, low] = sums;
-                // Densification reads the main layer's screen-space gradient alone.
+                // Densification reads the screen-space gradient of the colour, depth and alpha
+                // terms alone (the features' would grow the map for a loss that a coarse patch
+                // grid makes).
                 gm2[2 * li] = sg.xy.x;
                 gm2[2 * li + 1] = sg.xy.y;
                 gw[li] = weight;
-                if coarse {
-                    // The coarse splat's centre is (xy + 0.5) / s - 0.5 and its covariance
-                    // (cov2d - dilation) / s^2 + dilation.
-                    sg.xy += low.xy / scale;
-                    sg.opacity += low.opacity;
-                    let gc = conic_to_cov_grad(st.coarse.splats[i].conic, low.conic);
-                    let s2 = scale * scale;
-                    sg.cov += V3::new(gc[0][0], gc[0][1], gc[1][1]) / s2;
-                }
+                sg.xy += feature_xy;
                 screen[li] = sg;
                 on[li] = true;
             }
@@ -285,24 +254,28 @@ fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
     let stride = SLOTS + job.k;
     let LayerScratch {
         pair_grads,
+        pair_has_features,
         g_start,
         g_pairs,
         cursor,
     } = ls;
     pair_grads.resize(bins.pair_gauss.len() * stride, 0.0);
+    pair_has_features.resize(bins.pair_gauss.len(), false);
     let mut tile_slices = Vec::with_capacity(layer.grid.len());
-    let mut rest = pair_grads.as_mut_slice();
+    let (mut rest, mut rest_flags) = (pair_grads.as_mut_slice(), pair_has_features.as_mut_slice());
     for t in 0..layer.grid.len() {
-        let (head, tail) = rest.split_at_mut(bins.list(t).len() * stride);
-        tile_slices.push(head);
-        rest = tail;
+        let len = bins.list(t).len();
+        let (head, tail) = rest.split_at_mut(len * stride);
+        let (flags, tail_flags) = rest_flags.split_at_mut(len);
+        tile_slices.push((head, flags));
+        (rest, rest_flags) = (tail, tail_flags);
     }
     let walk = || {
         tile_slices.into_par_iter().enumerate().for_each_init(
             || Box::new(TileGrads::default()),
-            |tg, (t, slots)| {
-                if !slots.is_empty() {
-                    tile_backward(simd, job, t, tg, slots);
+            |tg, (t, (slots, flags))| {
+                if !flags.is_empty() {
+                    tile_backward(simd, job, t, tg, slots, flags);
                 }
             },
         )
@@ -337,8 +310,8 @@ struct TileJob<'a> {
     grads: ImageGrads<'a>,
     /// Feature channels the layer composited.
     k: usize,
-    /// Whether the layer composited colour and depth (the main layer does).
-    colour: bool,
+    /// Which pixels composited the features.
+    sampling: Sampling,
     cfg: &'a RasterConfig,
     /// Whether the forward pass kept the layer's falloffs.
     kept_falloffs: bool,
@@ -350,14 +323,17 @@ struct TileGrads {
     color: [[Real; TILE_LANES]; 3],
     depth: [Real; TILE_LANES],
     alpha: [Real; TILE_LANES],
-    /// Sum over channels of gradient x final value.
+    /// Sum over colour, depth and alpha of gradient x final value.
     total: [Real; TILE_LANES],
+    /// The same over the feature channels, where the pixel carries features.
+    total_f: [Real; TILE_LANES],
     /// Final transmittance, and how many Gaussians of the list the pixel composited.
     t_final: [Real; TILE_LANES],
     end: [u32; TILE_LANES],
     /// Transmittance before the current Gaussian, and the running sum of gradient x value.
     trans: [Real; TILE_LANES],
     prefix: [Real; TILE_LANES],
+    prefix_f: [Real; TILE_LANES],
 }
 
 impl Default for TileGrads {
@@ -367,10 +343,12 @@ impl Default for TileGrads {
             depth: [0.0; TILE_LANES],
             alpha: [0.0; TILE_LANES],
             total: [0.0; TILE_LANES],
+            total_f: [0.0; TILE_LANES],
             t_final: [0.0; TILE_LANES],
             end: [0; TILE_LANES],
             trans: [0.0; TILE_LANES],
             prefix: [0.0; TILE_LANES],
+            prefix_f: [0.0; TILE_LANES],
         }
     }
 }
@@ -379,11 +357,12 @@ impl TileGrads {
     /// Gathers tile `r`'s pixels (pixels outside the image composite nothing).
     #[inline(always)]
     fn load<L: Lanes>(&mut self, job: &TileJob, r: &TileRect) {
-        let (w, k, st, ig) = (job.layer.width, job.k, job.layer, job.grads);
+        let (w, k, st, ig, s) = (job.layer.width, job.k, job.layer, job.grads, job.sampling);
         let [color, depth, features] = job.rendered;
         self.end.fill(0);
         self.trans.fill(1.0);
         self.prefix.fill(0.0);
+        self.prefix_f.fill(0.0);
         for y in r.y0..r.y_end {
             for x in r.x0..r.x_end {
                 let (p, lp) = (y * w + x, (y - r.y0) * TILE + (x - r.x0));
@@ -396,9 +375,13 @@ impl TileGrads {
                 let gd = ig.depth.map_or(0.0, |v| v[p]);
                 self.depth[lp] = gd;
                 total += gd * depth.get(p).copied().unwrap_or(0.0);
-                if let Some(gf) = ig.features {
-                    total += L::dot(&gf[p * k..][..k], &features[p * k..][..k]);
-                }
+                self.total_f[lp] = match (ig.features, s.row(y), s.column(x)) {
+                    (Some(gf), Some(fy), Some(fx)) => {
+                        let q = fy * s.width + fx;
+                        L::dot(&gf[q * k..][..k], &features[q * k..][..k])
+                    }
+                    _ => 0.0,
+                };
                 self.total[lp] = total;
                 self.alpha[lp] = ig.alpha.map_or(0.0, |v| v[p]);
                 self.t_final[lp] = st.pixel_t[p];
@@ -409,8 +392,15 @@ impl TileGrads {
 }
 
 /// The backward walk over tile `t` through the implementation `simd` chose: `slots` receives
-/// one gradient slot per pair of the tile's list.
-fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
+/// one gradient slot per pair of the tile's list, and `flags` whether its features have one.
+fn tile_backward(
+    simd: Simd,
+    job: &TileJob,
+    t: usize,
+    tg: &mut TileGrads,
+    slots: &mut [Real],
+    flags: &mut [bool],
+) {
     dispatch!(
         simd,
         walk_tile(
@@ -418,42 +408,52 @@ fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots:
             t: usize,
             tg: &mut TileGrads,
             slots: &mut [Real],
+            flags: &mut [bool],
         )
     )
 }
 
-/// [`walk`] compiled for what the layer's loss has: the features' own layer has no colour or
-/// depth, and a training loss no alpha term, whose gradients would be zeros walked through
-/// every group (the same values either way).
+/// [`walk`] compiled for what the loss has: a training loss has no alpha term, whose gradients
+/// would be zeros walked through every group (the same values either way).
 #[inline(always)]
-fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
-    match (job.colour, job.grads.alpha.is_some()) {
-        (true, true) => walk::<L, true, true>(job, t, tg, slots),
-        (true, false) => walk::<L, true, false>(job, t, tg, slots),
-        // The features' own layer: alpha is rendered in the main one.
-        (false, _) => walk::<L, false, false>(job, t, tg, slots),
+fn walk_tile<L: Lanes>(
+    job: &TileJob,
+    t: usize,
+    tg: &mut TileGrads,
+    slots: &mut [Real],
+    flags: &mut [bool],
+) {
+    if job.grads.alpha.is_some() {
+        walk::<L, true>(job, t, tg, slots, flags)
+    } else {
+        walk::<L, false>(job, t, tg, slots, flags)
     }
 }
 
 /// Walks tile `t`'s list front to back as the forward pass did (Gaussian-major, eight pixels
 /// at a time), turning d(loss)/d(pixel) into each pair's screen-space and feature gradients;
-/// `COLOUR`: the layer composites colour and depth, `ALPHA`: the loss has an alpha term.
+/// `ALPHA`: the loss has an alpha term.
 #[inline(always)]
-fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
+fn walk<L: Lanes, const ALPHA: bool>(
     job: &TileJob,
     t: usize,
     tg: &mut TileGrads,
     slots: &mut [Real],
+    flags: &mut [bool],
 ) {
     let (st, k, cfg) = (job.layer, job.k, job.cfg);
     let stride = SLOTS + k;
     let r = TileRect::new(&st.grid, t, st.width, st.height);
     let cols = r.columns();
+    let feature_cols = job.sampling.columns(&r);
     tg.load::<L>(job, &r);
     let list = st.bins.list(t);
     // Past the last pixel's last contributor nothing has a gradient.
     let walked = tg.end.iter().copied().max().unwrap_or(0) as usize;
-    slots[walked * stride..].fill(0.0);
+    for slot in slots[walked * stride..].chunks_exact_mut(stride) {
+        slot[..SLOTS].fill(0.0);
+    }
+    flags.fill(false);
     let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
     let gf = job.grads.features.filter(|_| k > 0);
     // The forward pass's falloffs, when it kept them: a group at a time, in the same order.
@@ -466,8 +466,9 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
         let s = &st.splats[gi as usize];
         let f = &job.features[gi as usize * k..][..k];
         let slot = &mut slots[j * stride..][..stride];
-        slot.fill(0.0);
         let (slot, feat_slot) = slot.split_at_mut(SLOTS);
+        slot.fill(0.0);
+        let has_features = &mut flags[j];
         let color = [
             L::splat(s.color.x),
             L::splat(s.color.y),
@@ -499,43 +500,28 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
             // Spelt out, as the splats above: `array::map` was not inlined into the AVX2 walk,
             // so these loads went through a call compiled without AVX2 that passes vectors in
             // memory (2% of the mapper bench's profile; the backward 3-6% faster without it).
-            let mut x_j = zero;
-            if COLOUR {
-                let gc = [
-                    L::load(&tg.color[0][lp..]),
-                    L::load(&tg.color[1][lp..]),
-                    L::load(&tg.color[2][lp..]),
-                ];
-                let gd = L::load(&tg.depth[lp..]);
-                x_j = gc[0]
-                    .mul(color[0])
-                    .add(gc[1].mul(color[1]))
-                    .add(gc[2].mul(color[2]))
-                    .add(gd.mul(depth));
-                for ch in 0..3 {
-                    acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
-                }
-                acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
-                acc[slot::WEIGHT] = acc[slot::WEIGHT].add(wgt);
+            let gc = [
+                L::load(&tg.color[0][lp..]),
+                L::load(&tg.color[1][lp..]),
+                L::load(&tg.color[2][lp..]),
+            ];
+            let gd = L::load(&tg.depth[lp..]);
+            let x_j = gc[0]
+                .mul(color[0])
+                .add(gc[1].mul(color[1]))
+                .add(gc[2].mul(color[2]))
+                .add(gd.mul(depth));
+            for ch in 0..3 {
+                acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
             }
-            if let Some(gf) = gf {
-                let mut w = [0.0; LANES];
-                wgt.store(&mut w);
-                let mut dots = [0.0; LANES];
-                let mut bits = L::bits(ok);
-                let p0 = grp.y * st.width + r.x0 + grp.gx;
-                while bits != 0 {
-                    let l = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    dots[l] = L::axpy_dot(feat_slot, w[l], &gf[(p0 + l) * k..][..k], f);
-                }
-                x_j = x_j.add(L::load(&dots));
-            }
+            acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
+            acc[slot::WEIGHT] = acc[slot::WEIGHT].add(wgt);
             let prefix = L::load(&tg.prefix[lp..]);
             let prefix_next = prefix.add(wgt.mul(x_j));
             let next = t.mul(one.sub(cv.alpha));
             let total = L::load(&tg.total[lp..]);
-            // What lies behind this Gaussian, and d(loss)/d(its alpha).
+            // What lies behind this Gaussian, and d(loss)/d(its alpha): the colour, depth and
+            // alpha terms', then the features' where the group's pixels carry them.
             let mut behind = total.sub(prefix_next);
             let mut x_a = x_j;
             if ALPHA {
@@ -544,10 +530,45 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
                 behind = behind.add(ga.mul(next.sub(t_final)));
                 x_a = x_j.add(ga);
             }
+            let live = L::and_not(ok, cv.capped);
             let g_alpha = t.mul(x_a).sub(behind.div(one.sub(cv.alpha)));
-            let g_alpha = L::select(L::and_not(ok, cv.capped), g_alpha, zero);
-            acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha));
+            let g_alpha = L::select(live, g_alpha, zero);
             let g_sigma = zero.sub(cv.alpha.mul(g_alpha));
+            let feature_lanes = match job.sampling.row(grp.y) {
+                Some(fy) if gf.is_some() => Some(fy)
+                    .zip(Some((feature_cols >> grp.gx) as u32 & L::bits(ok)).filter(|&b| b != 0)),
+                _ => None,
+            };
+            let mut g_alpha_all = g_alpha;
+            let mut g_sigma_f = None;
+            if let (Some(gf), Some((fy, mut bits))) = (gf, feature_lanes) {
+                let mut w = [0.0; LANES];
+                wgt.store(&mut w);
+                let mut dots = [0.0; LANES];
+                let sm = job.sampling;
+                if !*has_features {
+                    feat_slot.fill(0.0);
+                    *has_features = true;
+                }
+                while bits != 0 {
+                    let l = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    let fx = (r.x0 + grp.gx + l - sm.x0) / sm.s;
+                    let q = fy * sm.width + fx;
+                    dots[l] = L::axpy_dot(feat_slot, w[l], &gf[q * k..][..k], f);
+                }
+                let x_f = L::load(&dots);
+                let prefix_f = L::load(&tg.prefix_f[lp..]);
+                let prefix_f_next = prefix_f.add(wgt.mul(x_f));
+                let behind_f = L::load(&tg.total_f[lp..]).sub(prefix_f_next);
+                let g_alpha_f = t.mul(x_f).sub(behind_f.div(one.sub(cv.alpha)));
+                let g_alpha_f = L::select(live, g_alpha_f, zero);
+                prefix_f_next.store_where(ok, prefix_f, &mut tg.prefix_f[lp..]);
+                g_alpha_all = g_alpha.add(g_alpha_f);
+                g_sigma_f = Some(zero.sub(cv.alpha.mul(g_alpha_f)));
+            }
+            acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha_all));
+            let g_sigma_all = zero.sub(cv.alpha.mul(g_alpha_all));
             let dx = cv.dx;
             let dy = grp.y as Real - s.xy.y;
             let d_mean = [
@@ -556,6 +577,10 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
             ];
             for (i, d) in d_mean.into_iter().enumerate() {
                 acc[slot::X + i] = acc[slot::X + i].sub(d.mul(g_sigma));
+                if let Some(g_sigma_f) = g_sigma_f {
+                    let at = slot::FEATURE_X + i;
+                    acc[at] = acc[at].sub(d.mul(g_sigma_f));
+                }
             }
             let d_conic = [
                 half.mul(dx).mul(dx),
@@ -563,7 +588,7 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
                 L::splat(0.5 * dy * dy),
             ];
             for (i, d) in d_conic.into_iter().enumerate() {
-                acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma));
+                acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma_all));
             }
             next.store_where(ok, t, &mut tg.trans[lp..]);
             prefix_next.store_where(ok, prefix, &mut tg.prefix[lp..]);

@@ -42,6 +42,67 @@ impl TileRect {
     }
 }
 
+/// Which pixels of a render carry features: every `s`-th column of every `s`-th row from
+/// (`x0`, `y0`), so that the feature image's pixel (i, j) is the render's pixel (s i + x0,
+/// s j + y0), for a feature image of width / s by height / s (at `s` = 1, every pixel).
+/// Features sampled so cost a render (and its backward pass) their channels at those pixels
+/// alone: their coverage, alpha and transmittance are the colour's.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct Sampling {
+    pub s: usize,
+    pub x0: usize,
+    pub y0: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+impl Sampling {
+    /// Every `s`-th pixel from `offset` (each below `s`) of a `width` x `height` render.
+    pub fn new(s: usize, offset: [usize; 2], width: usize, height: usize) -> Self {
+        Sampling {
+            s,
+            x0: offset[0],
+            y0: offset[1],
+            width: width / s,
+            height: height / s,
+        }
+    }
+
+    /// The index along an axis that `v` carries, if any: (v - first) / s below `len`.
+    #[inline(always)]
+    fn along(&self, v: usize, first: usize, len: usize) -> Option<usize> {
+        let d = v.checked_sub(first)?;
+        (d % self.s == 0 && d / self.s < len).then_some(d / self.s)
+    }
+
+    /// The feature row that the render's row `y` carries, if any.
+    #[inline(always)]
+    pub fn row(&self, y: usize) -> Option<usize> {
+        self.along(y, self.y0, self.height)
+    }
+
+    /// The feature column of the render's column `x`, if any.
+    #[inline(always)]
+    pub fn column(&self, x: usize) -> Option<usize> {
+        self.along(x, self.x0, self.width)
+    }
+
+    /// Bit i: the tile's column x0 + i carries features (i < TILE + LANES).
+    pub fn columns(&self, r: &TileRect) -> u64 {
+        (0..TILE + LANES)
+            .filter(|&i| r.x0 + i < r.x_end && self.column(r.x0 + i).is_some())
+            .fold(0, |b, i| b | 1 << i)
+    }
+
+    /// The feature rows that the render's rows [y0, y_end) carry.
+    pub fn rows(&self, y0: usize, y_end: usize) -> std::ops::Range<usize> {
+        let (o, s) = (self.y0, self.s);
+        let lo = y0.saturating_sub(o).div_ceil(s);
+        let hi = y_end.saturating_sub(o).div_ceil(s).min(self.height);
+        lo.min(hi)..hi
+    }
+}
+
 /// One Gaussian over eight pixels of a row.
 pub(crate) struct Cover<L: Lanes> {
     /// Lanes inside the row's span whose alpha reaches `alpha_min`.
@@ -271,6 +332,8 @@ pub(crate) struct TileInputs<'a> {
     pub k: usize,
     /// Whether the layer accumulates colour and depth (the features' own layer has none).
     pub colour: bool,
+    /// Which pixels accumulate the features.
+    pub sampling: Sampling,
     pub cfg: &'a RasterConfig,
 }
 
@@ -310,6 +373,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
         ..
     } = *inputs;
     let cols = r.columns();
+    let feature_cols = inputs.sampling.columns(r);
     let (zero, one) = (L::splat(0.0), L::splat(1.0));
     let t_min = L::splat(cfg.transmittance_min);
     for (j, &gi) in list.iter().enumerate() {
@@ -359,10 +423,14 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             }
             next.store_where(add, t, &mut acc.trans[lp..]);
             L::set_where(add, j as u32 + 1, &mut acc.end[lp..]);
-            if k > 0 {
+            let sampled = match inputs.sampling.row(g.y) {
+                Some(_) if k > 0 => (feature_cols >> g.gx) as u32 & L::bits(add),
+                _ => 0,
+            };
+            if sampled != 0 {
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
-                let mut bits = L::bits(add);
+                let mut bits = sampled;
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;

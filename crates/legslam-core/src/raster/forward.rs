@@ -1,10 +1,11 @@
-//! Forward pass: project every Gaussian, bin into tiles, composite front to back. Colour,
-//! depth and alpha composite in the main layer; features either there too or, when asked for
-//! at a coarser scale, in a layer of their own whose splats come from the same projection.
+//! Forward pass: project every Gaussian, bin into tiles, composite front to back. Colour, depth,
+//! alpha and features composite in one pass; features asked for at a coarser scale are
+//! accumulated at every `feature_scale`-th pixel of every `feature_scale`-th row only
+//! ([`Sampling`]).
 
 use rayon::prelude::*;
 
-use super::composite::{composite, TileAcc, TileInputs, TileRect};
+use super::composite::{composite, Sampling, TileAcc, TileInputs, TileRect};
 use super::lanes::{dispatch, Simd};
 use super::math::{V2, V3};
 use super::project;
@@ -51,7 +52,7 @@ fn clip(lo: u32, hi: u32, start: usize, end: usize) -> std::ops::Range<usize> {
     first..(hi as usize).min(end).max(first)
 }
 
-/// One compositing layer of a render: its size, splats, tile lists and what each pixel did.
+/// A render's compositing layer: its size, splats, tile lists and what each pixel did.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Layer {
     pub width: usize,
@@ -81,26 +82,14 @@ impl Layer {
         self.splats.resize(n, Splat::default());
         self.rects.resize(n, [0; 4]);
     }
-
-    fn clear(&mut self) {
-        *self = Layer {
-            splats: std::mem::take(&mut self.splats),
-            rects: std::mem::take(&mut self.rects),
-            falloffs: std::mem::take(&mut self.falloffs),
-            ..Default::default()
-        };
-        self.splats.clear();
-        self.rects.clear();
-    }
 }
 
 /// What the backward pass needs from the forward pass.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct State {
-    /// Colour, depth, alpha, and the features unless they have a layer of their own.
     pub main: Layer,
-    /// The features alone, `feature_scale` times coarser (empty at scale 1).
-    pub coarse: Layer,
+    /// The pixels that carry features.
+    pub sampling: Sampling,
     pub options: RenderOptions,
 }
 
@@ -149,19 +138,16 @@ pub fn render_into(
             "feature_scale must be at least 1 and at most the image size, got {scale} for {w}x{h}"
         ));
     }
-    let coarse = k > 0 && scale > 1;
+    if opts.feature_offset.iter().any(|&o| o >= scale) {
+        return Err(format!(
+            "feature_offset must lie below feature_scale ({scale}), got {:?}",
+            opts.feature_offset
+        ));
+    }
     let st = &mut out.state;
     st.main.reset(w, h, g.len());
-    if coarse {
-        st.coarse.reset(w / scale, h / scale, g.len());
-    } else {
-        st.coarse.clear();
-    }
-    let coarse_scale = coarse.then_some(scale);
-    let (main, low) = (&mut st.main, &mut st.coarse);
-    project::project(g, cam, opts, simd, coarse_scale, main, low, &mut out.radii);
+    project::project(g, cam, opts, simd, &mut st.main, &mut out.radii);
     st.options = RenderOptions { simd, ..*opts };
-    let main_k = if coarse { 0 } else { k };
     // The compositing writes every pixel of each image it outputs, so a reused buffer is
     // resized, not cleared (64 features at 640x480 are 79 MB to zero).
     let outputs = |v: &mut Vec<Real>, on: bool, len: usize| {
@@ -170,30 +156,33 @@ pub fn render_into(
     outputs(&mut out.color, opts.color, w * h * 3);
     outputs(&mut out.depth, opts.depth, w * h);
     outputs(&mut out.alpha, opts.alpha, w * h);
-    let (fw, fh) = if coarse {
-        (w / scale, h / scale)
+    // Without features the scale does not apply: the (empty) feature image is the render's size.
+    let sampling = if k > 0 {
+        Sampling::new(scale, opts.feature_offset, w, h)
     } else {
-        (w, h)
+        Sampling::new(1, [0, 0], w, h)
     };
+    let (fw, fh) = (sampling.width, sampling.height);
+    st.sampling = sampling;
     outputs(&mut out.features, k > 0, fw * fh * k);
     let images = Images {
         color: &mut out.color,
         depth: &mut out.depth,
         alpha: &mut out.alpha,
-        features: if coarse { &mut [] } else { &mut out.features },
+        features: &mut out.features,
     };
     let keep = opts.for_backward;
     let cfg = &opts.config;
-    composite_layer(&mut st.main, simd, g.features, main_k, images, cfg, keep);
-    if coarse {
-        let images = Images {
-            color: &mut [],
-            depth: &mut [],
-            alpha: &mut [],
-            features: &mut out.features,
-        };
-        composite_layer(&mut st.coarse, simd, g.features, k, images, cfg, keep);
-    }
+    composite_layer(
+        &mut st.main,
+        simd,
+        g.features,
+        k,
+        sampling,
+        images,
+        cfg,
+        keep,
+    );
     out.width = w;
     out.height = h;
     out.num_features = k;
@@ -211,13 +200,15 @@ struct Images<'a> {
 }
 
 /// Bins a projected layer and composites it, one row of tiles at a time (its pixels are
-/// contiguous in every image), `k` feature channels of `features` ([N, k]); with `keep`, keeps
-/// the falloffs for the backward pass.
+/// contiguous in every image), `k` feature channels of `features` ([N, k]) at the pixels of
+/// `sampling`; with `keep`, keeps the falloffs for the backward pass.
+#[allow(clippy::too_many_arguments)]
 fn composite_layer(
     layer: &mut Layer,
     simd: Simd,
     features: &[Real],
     k: usize,
+    sampling: Sampling,
     images: Images,
     cfg: &RasterConfig,
     keep: bool,
@@ -236,11 +227,20 @@ fn composite_layer(
     let n = grid.tiles_y;
     // Colour and depth are accumulated only where they are output.
     let colour = !images.color.is_empty() || !images.depth.is_empty();
+    // Each row of tiles writes the feature rows its pixel rows carry.
+    let mut feature_rows = Vec::with_capacity(n);
+    let mut rest = images.features;
+    for ty in 0..n {
+        let fr = sampling.rows(ty * TILE, ((ty + 1) * TILE).min(h));
+        let (head, tail) = rest.split_at_mut((fr.end - fr.start) * sampling.width * k);
+        feature_rows.push((fr.start, head));
+        rest = tail;
+    }
     let outs: Vec<_> = split_chunks(images.color, rows * 3, n)
         .into_iter()
         .zip(split_chunks(images.depth, rows, n))
         .zip(split_chunks(images.alpha, rows, n))
-        .zip(split_chunks(images.features, rows * k, n))
+        .zip(feature_rows)
         .zip(split_chunks(&mut layer.pixel_end, rows, n))
         .zip(split_chunks(&mut layer.pixel_t, rows, n))
         .zip(layer.falloffs.iter_mut())
@@ -253,10 +253,11 @@ fn composite_layer(
         features,
         k,
         colour,
+        sampling,
         cfg,
     };
     outs.into_par_iter().for_each(
-        |(ty, (((((((col, dep), alp), fea), end), tr), fo), starts))| {
+        |(ty, (((((((col, dep), alp), (frow0, fea)), end), tr), fo), starts))| {
             let mut acc = TileAcc::new(k);
             fo.clear();
             for (tx, start) in starts.iter_mut().enumerate() {
@@ -285,7 +286,10 @@ fn composite_layer(
                             alp[p] = 1.0 - acc.trans[lp];
                         }
                         if k > 0 {
-                            fea[p * k..][..k].copy_from_slice(&acc.feat[lp * k..][..k]);
+                            if let (Some(fy), Some(fx)) = (sampling.row(y), sampling.column(x)) {
+                                let q = (fy - frow0) * sampling.width + fx;
+                                fea[q * k..][..k].copy_from_slice(&acc.feat[lp * k..][..k]);
+                            }
                         }
                         end[p] = acc.end[lp];
                         tr[p] = acc.trans[lp];
