@@ -10,7 +10,8 @@
 use rayon::prelude::*;
 
 use super::composite::{
-    cover_kept, for_each_group, prefetch, prefetch_ahead, Sampling, TileRect, TILE_LANES,
+    cover_kept, for_each_group, prefetch, prefetch_ahead, Sampling, TileRect, TileSampling,
+    TILE_LANES,
 };
 use super::forward::{split_chunks, Layer};
 use super::lanes::{dispatch, Lanes, Simd, LANES};
@@ -72,9 +73,12 @@ pub struct BackwardScratch {
 /// The layer's per-pair gradients, and each Gaussian's pairs.
 #[derive(Default)]
 struct LayerScratch {
+    /// [pairs, SLOTS], dense: the per-Gaussian sums read every pair's.
     pair_grads: Vec<Real>,
-    /// Per pair: whether its feature slots hold gradients (otherwise they are stale, and
-    /// read as zeros): most pairs of a layer whose features are sampled reach no feature pixel.
+    /// [pairs, K]: a pair's features' gradient, where `pair_has_features` says it has one
+    /// (otherwise stale, read as zeros: with features at every s-th pixel, many pairs reach
+    /// none).
+    pair_features: Vec<Real>,
     pair_has_features: Vec<bool>,
     /// Gaussian i's pairs are `g_pairs[g_start[i]..g_start[i + 1]]`, in tile order.
     g_start: Vec<usize>,
@@ -142,7 +146,7 @@ pub fn backward_into(
         kept_falloffs: opts.for_backward,
     };
     walk_layer(opts.simd, &job, &mut scratch.layer);
-    let (ls, stride) = (&scratch.layer, SLOTS + k);
+    let ls = &scratch.layer;
 
     // Only the rows of Gaussians on screen are written (every value of each); the others keep
     // what they held, stale (zeros in new arrays): no pass reads them (see `Gradients::rows`),
@@ -185,12 +189,10 @@ pub fn backward_into(
                 if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
                     for &pr in ls.pairs(ahead as usize) {
                         let pr = pr as usize;
-                        let len = if ls.pair_has_features[pr] {
-                            stride
-                        } else {
-                            SLOTS
-                        };
-                        prefetch(&ls.pair_grads[pr * stride..][..len]);
+                        prefetch(&ls.pair_grads[pr * SLOTS..][..SLOTS]);
+                        if ls.pair_has_features[pr] {
+                            prefetch(&ls.pair_features[pr * k..][..k]);
+                        }
                     }
                 }
                 let (i, li) = (i as usize, i as usize - first);
@@ -201,7 +203,7 @@ pub fn backward_into(
                 feat_row.fill(0.0);
                 for &pr in ls.pairs(i) {
                     let pr = pr as usize;
-                    let s = &ls.pair_grads[pr * stride..][..stride];
+                    let s = &ls.pair_grads[pr * SLOTS..][..SLOTS];
                     let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
                     sg.xy += V2::new(s[slot::X], s[slot::Y]);
                     sg.conic += v3(slot::CONIC);
@@ -211,7 +213,7 @@ pub fn backward_into(
                     weight += s[slot::WEIGHT];
                     feature_xy += V2::new(s[slot::FEATURE_X], s[slot::FEATURE_Y]);
                     if ls.pair_has_features[pr] {
-                        for (o, v) in feat_row.iter_mut().zip(&s[SLOTS..]) {
+                        for (o, v) in feat_row.iter_mut().zip(&ls.pair_features[pr * k..][..k]) {
                             *o += v;
                         }
                     }
@@ -251,31 +253,35 @@ pub fn backward_into(
 fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
     let layer = job.layer;
     let bins = &layer.bins;
-    let stride = SLOTS + job.k;
+    let (pairs, k) = (bins.pair_gauss.len(), job.k);
     let LayerScratch {
         pair_grads,
+        pair_features,
         pair_has_features,
         g_start,
         g_pairs,
         cursor,
     } = ls;
-    pair_grads.resize(bins.pair_gauss.len() * stride, 0.0);
-    pair_has_features.resize(bins.pair_gauss.len(), false);
-    let mut tile_slices = Vec::with_capacity(layer.grid.len());
-    let (mut rest, mut rest_flags) = (pair_grads.as_mut_slice(), pair_has_features.as_mut_slice());
+    pair_grads.resize(pairs * SLOTS, 0.0);
+    pair_features.resize(pairs * k, 0.0);
+    pair_has_features.resize(pairs, false);
+    let mut tiles = Vec::with_capacity(layer.grid.len());
+    let mut rest = PairSlots {
+        grads: pair_grads,
+        features: pair_features,
+        has_features: pair_has_features,
+    };
     for t in 0..layer.grid.len() {
-        let len = bins.list(t).len();
-        let (head, tail) = rest.split_at_mut(len * stride);
-        let (flags, tail_flags) = rest_flags.split_at_mut(len);
-        tile_slices.push((head, flags));
-        (rest, rest_flags) = (tail, tail_flags);
+        let (head, tail) = rest.split_at(bins.list(t).len(), k);
+        tiles.push(head);
+        rest = tail;
     }
     let walk = || {
-        tile_slices.into_par_iter().enumerate().for_each_init(
+        tiles.into_par_iter().enumerate().for_each_init(
             || Box::new(TileGrads::default()),
-            |tg, (t, (slots, flags))| {
-                if !flags.is_empty() {
-                    tile_backward(simd, job, t, tg, slots, flags);
+            |tg, (t, mut slots)| {
+                if !slots.has_features.is_empty() {
+                    tile_backward(simd, job, t, tg, &mut slots);
                 }
             },
         )
@@ -298,6 +304,36 @@ fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
         }
     };
     rayon::join(walk, list);
+}
+
+/// Consecutive pairs' gradient slots.
+struct PairSlots<'a> {
+    /// [pairs, SLOTS]
+    grads: &'a mut [Real],
+    /// [pairs, K]
+    features: &'a mut [Real],
+    has_features: &'a mut [bool],
+}
+
+impl<'a> PairSlots<'a> {
+    /// The first `n` pairs, and the rest (`k` feature channels a pair).
+    fn split_at(self, n: usize, k: usize) -> (PairSlots<'a>, PairSlots<'a>) {
+        let (g, g_rest) = self.grads.split_at_mut(n * SLOTS);
+        let (f, f_rest) = self.features.split_at_mut(n * k);
+        let (h, h_rest) = self.has_features.split_at_mut(n);
+        (
+            PairSlots {
+                grads: g,
+                features: f,
+                has_features: h,
+            },
+            PairSlots {
+                grads: g_rest,
+                features: f_rest,
+                has_features: h_rest,
+            },
+        )
+    }
 }
 
 /// What every tile of one layer's backward walk reads.
@@ -356,8 +392,9 @@ impl Default for TileGrads {
 impl TileGrads {
     /// Gathers tile `r`'s pixels (pixels outside the image composite nothing).
     #[inline(always)]
-    fn load<L: Lanes>(&mut self, job: &TileJob, r: &TileRect) {
-        let (w, k, st, ig, s) = (job.layer.width, job.k, job.layer, job.grads, job.sampling);
+    fn load<L: Lanes>(&mut self, job: &TileJob, r: &TileRect, sampled: &TileSampling) {
+        let (w, k, st, ig) = (job.layer.width, job.k, job.layer, job.grads);
+        let fw = job.sampling.width;
         let [color, depth, features] = job.rendered;
         self.end.fill(0);
         self.trans.fill(1.0);
@@ -375,9 +412,9 @@ impl TileGrads {
                 let gd = ig.depth.map_or(0.0, |v| v[p]);
                 self.depth[lp] = gd;
                 total += gd * depth.get(p).copied().unwrap_or(0.0);
-                self.total_f[lp] = match (ig.features, s.row(y), s.column(x)) {
-                    (Some(gf), Some(fy), Some(fx)) => {
-                        let q = fy * s.width + fx;
+                self.total_f[lp] = match (ig.features, sampled.row[y - r.y0]) {
+                    (Some(gf), Some(fy)) if sampled.group(x - r.x0) & 1 != 0 => {
+                        let q = fy * fw + sampled.column[x - r.x0] as usize;
                         L::dot(&gf[q * k..][..k], &features[q * k..][..k])
                     }
                     _ => 0.0,
@@ -392,23 +429,15 @@ impl TileGrads {
 }
 
 /// The backward walk over tile `t` through the implementation `simd` chose: `slots` receives
-/// one gradient slot per pair of the tile's list, and `flags` whether its features have one.
-fn tile_backward(
-    simd: Simd,
-    job: &TileJob,
-    t: usize,
-    tg: &mut TileGrads,
-    slots: &mut [Real],
-    flags: &mut [bool],
-) {
+/// the gradients of each pair of the tile's list.
+fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut PairSlots) {
     dispatch!(
         simd,
         walk_tile(
             job: &TileJob,
             t: usize,
             tg: &mut TileGrads,
-            slots: &mut [Real],
-            flags: &mut [bool],
+            slots: &mut PairSlots,
         )
     )
 }
@@ -416,17 +445,11 @@ fn tile_backward(
 /// [`walk`] compiled for what the loss has: a training loss has no alpha term, whose gradients
 /// would be zeros walked through every group (the same values either way).
 #[inline(always)]
-fn walk_tile<L: Lanes>(
-    job: &TileJob,
-    t: usize,
-    tg: &mut TileGrads,
-    slots: &mut [Real],
-    flags: &mut [bool],
-) {
+fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut PairSlots) {
     if job.grads.alpha.is_some() {
-        walk::<L, true>(job, t, tg, slots, flags)
+        walk::<L, true>(job, t, tg, slots)
     } else {
-        walk::<L, false>(job, t, tg, slots, flags)
+        walk::<L, false>(job, t, tg, slots)
     }
 }
 
@@ -438,22 +461,18 @@ fn walk<L: Lanes, const ALPHA: bool>(
     job: &TileJob,
     t: usize,
     tg: &mut TileGrads,
-    slots: &mut [Real],
-    flags: &mut [bool],
+    slots: &mut PairSlots,
 ) {
     let (st, k, cfg) = (job.layer, job.k, job.cfg);
-    let stride = SLOTS + k;
     let r = TileRect::new(&st.grid, t, st.width, st.height);
     let cols = r.columns();
-    let feature_cols = job.sampling.columns(&r);
-    tg.load::<L>(job, &r);
+    let sampled = job.sampling.tile(&r);
+    tg.load::<L>(job, &r, &sampled);
     let list = st.bins.list(t);
     // Past the last pixel's last contributor nothing has a gradient.
     let walked = tg.end.iter().copied().max().unwrap_or(0) as usize;
-    for slot in slots[walked * stride..].chunks_exact_mut(stride) {
-        slot[..SLOTS].fill(0.0);
-    }
-    flags.fill(false);
+    slots.grads[walked * SLOTS..].fill(0.0);
+    slots.has_features.fill(false);
     let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
     let gf = job.grads.features.filter(|_| k > 0);
     // The forward pass's falloffs, when it kept them: a group at a time, in the same order.
@@ -465,10 +484,10 @@ fn walk<L: Lanes, const ALPHA: bool>(
         prefetch_ahead(list, j, &st.splats, job.features, k);
         let s = &st.splats[gi as usize];
         let f = &job.features[gi as usize * k..][..k];
-        let slot = &mut slots[j * stride..][..stride];
-        let (slot, feat_slot) = slot.split_at_mut(SLOTS);
+        let slot = &mut slots.grads[j * SLOTS..][..SLOTS];
         slot.fill(0.0);
-        let has_features = &mut flags[j];
+        let feat_slot = &mut slots.features[j * k..][..k];
+        let has_features = &mut slots.has_features[j];
         let color = [
             L::splat(s.color.x),
             L::splat(s.color.y),
@@ -534,9 +553,10 @@ fn walk<L: Lanes, const ALPHA: bool>(
             let g_alpha = t.mul(x_a).sub(behind.div(one.sub(cv.alpha)));
             let g_alpha = L::select(live, g_alpha, zero);
             let g_sigma = zero.sub(cv.alpha.mul(g_alpha));
-            let feature_lanes = match job.sampling.row(grp.y) {
-                Some(fy) if gf.is_some() => Some(fy)
-                    .zip(Some((feature_cols >> grp.gx) as u32 & L::bits(ok)).filter(|&b| b != 0)),
+            let feature_lanes = match sampled.row[grp.y - r.y0] {
+                Some(fy) if gf.is_some() => {
+                    Some(fy).zip(Some(sampled.group(grp.gx) & L::bits(ok)).filter(|&b| b != 0))
+                }
                 _ => None,
             };
             let mut g_alpha_all = g_alpha;
@@ -545,7 +565,7 @@ fn walk<L: Lanes, const ALPHA: bool>(
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
                 let mut dots = [0.0; LANES];
-                let sm = job.sampling;
+                let fw = job.sampling.width;
                 if !*has_features {
                     feat_slot.fill(0.0);
                     *has_features = true;
@@ -553,8 +573,7 @@ fn walk<L: Lanes, const ALPHA: bool>(
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;
-                    let fx = (r.x0 + grp.gx + l - sm.x0) / sm.s;
-                    let q = fy * sm.width + fx;
+                    let q = fy * fw + sampled.column[grp.gx + l] as usize;
                     dots[l] = L::axpy_dot(feat_slot, w[l], &gf[q * k..][..k], f);
                 }
                 let x_f = L::load(&dots);

@@ -75,23 +75,25 @@ impl Sampling {
         (d % self.s == 0 && d / self.s < len).then_some(d / self.s)
     }
 
-    /// The feature row that the render's row `y` carries, if any.
-    #[inline(always)]
-    pub fn row(&self, y: usize) -> Option<usize> {
-        self.along(y, self.y0, self.height)
-    }
-
-    /// The feature column of the render's column `x`, if any.
-    #[inline(always)]
-    pub fn column(&self, x: usize) -> Option<usize> {
-        self.along(x, self.x0, self.width)
-    }
-
-    /// Bit i: the tile's column x0 + i carries features (i < TILE + LANES).
-    pub fn columns(&self, r: &TileRect) -> u64 {
-        (0..TILE + LANES)
-            .filter(|&i| r.x0 + i < r.x_end && self.column(r.x0 + i).is_some())
-            .fold(0, |b, i| b | 1 << i)
+    /// Tile `r`'s share.
+    pub fn tile(&self, r: &TileRect) -> TileSampling {
+        let mut t = TileSampling {
+            columns: 0,
+            column: [0; TILE + LANES],
+            row: [None; TILE],
+        };
+        for (i, c) in t.column.iter_mut().enumerate() {
+            let x = r.x0 + i;
+            if let Some(fx) = self.along(x, self.x0, self.width).filter(|_| x < r.x_end) {
+                t.columns |= 1 << i;
+                *c = fx as u32;
+            }
+        }
+        for (i, row) in t.row.iter_mut().enumerate() {
+            let y = r.y0 + i;
+            *row = self.along(y, self.y0, self.height).filter(|_| y < r.y_end);
+        }
+        t
     }
 
     /// The feature rows that the render's rows [y0, y_end) carry.
@@ -100,6 +102,25 @@ impl Sampling {
         let lo = y0.saturating_sub(o).div_ceil(s);
         let hi = y_end.saturating_sub(o).div_ceil(s).min(self.height);
         lo.min(hi)..hi
+    }
+}
+
+/// A tile's part of a [`Sampling`], its divisions made once a tile instead of once a group of
+/// eight pixels (a division by a number known only at run time costs tens of cycles).
+pub(crate) struct TileSampling {
+    /// Bit i: the tile's column x0 + i carries features (i < TILE + LANES).
+    columns: u64,
+    /// Per column from the tile's first: its feature column, where it carries features.
+    pub column: [u32; TILE + LANES],
+    /// Per row of the tile: its feature row, if it carries features.
+    pub row: [Option<usize>; TILE],
+}
+
+impl TileSampling {
+    /// Which of the eight columns from the tile's column `gx` carry features (bit l: gx + l).
+    #[inline(always)]
+    pub fn group(&self, gx: usize) -> u32 {
+        (self.columns >> gx) as u32 & 0xff
     }
 }
 
@@ -330,29 +351,28 @@ pub(crate) struct TileInputs<'a> {
     pub features: &'a [Real],
     /// Feature channels the layer composites.
     pub k: usize,
-    /// Whether the layer accumulates colour and depth (the features' own layer has none).
+    /// Whether the layer accumulates colour and depth (a render without either does not).
     pub colour: bool,
-    /// Which pixels accumulate the features.
-    pub sampling: Sampling,
     pub cfg: &'a RasterConfig,
 }
 
 /// Composites the tile's list `list` (front to back) into `acc`: Gaussian-major, so that only
 /// the pixels inside each Gaussian's span are visited, eight at a time; every pixel still sees
 /// its Gaussians in depth order. With `falloffs`, appends each group's exponential there (zero
-/// in the lanes not covered), for [`cover_kept`].
+/// in the lanes not covered), for [`cover_kept`]. Features go to the pixels of `sampled`.
 #[inline(always)]
 pub(crate) fn composite<L: Lanes>(
     acc: &mut TileAcc,
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
+    sampled: &TileSampling,
     falloffs: Option<&mut Vec<Real>>,
 ) {
     if inputs.colour {
-        composite_with::<L, true>(acc, inputs, list, r, falloffs)
+        composite_with::<L, true>(acc, inputs, list, r, sampled, falloffs)
     } else {
-        composite_with::<L, false>(acc, inputs, list, r, falloffs)
+        composite_with::<L, false>(acc, inputs, list, r, sampled, falloffs)
     }
 }
 
@@ -363,6 +383,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
+    sampled: &TileSampling,
     mut falloffs: Option<&mut Vec<Real>>,
 ) {
     let TileInputs {
@@ -373,7 +394,6 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
         ..
     } = *inputs;
     let cols = r.columns();
-    let feature_cols = inputs.sampling.columns(r);
     let (zero, one) = (L::splat(0.0), L::splat(1.0));
     let t_min = L::splat(cfg.transmittance_min);
     for (j, &gi) in list.iter().enumerate() {
@@ -423,14 +443,14 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             }
             next.store_where(add, t, &mut acc.trans[lp..]);
             L::set_where(add, j as u32 + 1, &mut acc.end[lp..]);
-            let sampled = match inputs.sampling.row(g.y) {
-                Some(_) if k > 0 => (feature_cols >> g.gx) as u32 & L::bits(add),
+            let feature_lanes = match sampled.row[g.y - r.y0] {
+                Some(_) if k > 0 => sampled.group(g.gx) & L::bits(add),
                 _ => 0,
             };
-            if sampled != 0 {
+            if feature_lanes != 0 {
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
-                let mut bits = sampled;
+                let mut bits = feature_lanes;
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;

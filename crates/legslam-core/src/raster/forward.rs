@@ -5,7 +5,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{composite, Sampling, TileAcc, TileInputs, TileRect};
+use super::composite::{composite, Sampling, TileAcc, TileInputs, TileRect, TileSampling};
 use super::lanes::{dispatch, Simd};
 use super::math::{V2, V3};
 use super::project;
@@ -253,7 +253,6 @@ fn composite_layer(
         features,
         k,
         colour,
-        sampling,
         cfg,
     };
     outs.into_par_iter().for_each(
@@ -264,11 +263,12 @@ fn composite_layer(
                 let t = ty * grid.tiles_x + tx;
                 let r = TileRect::new(&grid, t, w, h);
                 let list = bins.list(t);
+                let sampled = sampling.tile(&r);
                 acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
                 *start = fo.len();
                 if !list.is_empty() {
                     let kept = keep.then_some(&mut *fo);
-                    composite_tile(simd, &mut acc, &inputs, list, &r, kept);
+                    composite_tile(simd, &mut acc, &inputs, list, &r, &sampled, kept);
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -285,8 +285,9 @@ fn composite_layer(
                         if !alp.is_empty() {
                             alp[p] = 1.0 - acc.trans[lp];
                         }
-                        if k > 0 {
-                            if let (Some(fy), Some(fx)) = (sampling.row(y), sampling.column(x)) {
+                        if let (true, Some(fy)) = (k > 0, sampled.row[y - r.y0]) {
+                            if sampled.group(x - r.x0) & 1 != 0 {
+                                let fx = sampled.column[x - r.x0] as usize;
                                 let q = (fy - frow0) * sampling.width + fx;
                                 fea[q * k..][..k].copy_from_slice(&acc.feat[lp * k..][..k]);
                             }
@@ -307,6 +308,7 @@ fn composite_tile(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
+    sampled: &TileSampling,
     falloffs: Option<&mut Vec<Real>>,
 ) {
     dispatch!(
@@ -316,6 +318,7 @@ fn composite_tile(
             inputs: &TileInputs,
             list: &[u32],
             r: &TileRect,
+            sampled: &TileSampling,
             falloffs: Option<&mut Vec<Real>>,
         )
     )
