@@ -553,14 +553,32 @@ fn walk<L: Lanes, const ALPHA: bool>(
             let g_alpha = t.mul(x_a).sub(behind.div(one.sub(cv.alpha)));
             let g_alpha = L::select(live, g_alpha, zero);
             let g_sigma = zero.sub(cv.alpha.mul(g_alpha));
+            acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha));
+            let dx = cv.dx;
+            let dy = grp.y as Real - s.xy.y;
+            let d_mean = [
+                L::splat(a).mul(dx).add(L::splat(b * dy)),
+                L::splat(b).mul(dx).add(L::splat(c * dy)),
+            ];
+            for (i, d) in d_mean.into_iter().enumerate() {
+                acc[slot::X + i] = acc[slot::X + i].sub(d.mul(g_sigma));
+            }
+            let d_conic = [
+                half.mul(dx).mul(dx),
+                dx.mul(L::splat(dy)),
+                L::splat(0.5 * dy * dy),
+            ];
+            for (i, d) in d_conic.into_iter().enumerate() {
+                acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma));
+            }
+            // The feature term, in the groups whose pixels carry features: its own share of
+            // d(loss)/d(alpha), added to the same slots (the centre's to slots of its own).
             let feature_lanes = match sampled.row[grp.y - r.y0] {
                 Some(fy) if gf.is_some() => {
                     Some(fy).zip(Some(sampled.group(grp.gx) & L::bits(ok)).filter(|&b| b != 0))
                 }
                 _ => None,
             };
-            let mut g_alpha_all = g_alpha;
-            let mut g_sigma_f = None;
             if let (Some(gf), Some((fy, mut bits))) = (gf, feature_lanes) {
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
@@ -583,31 +601,15 @@ fn walk<L: Lanes, const ALPHA: bool>(
                 let g_alpha_f = t.mul(x_f).sub(behind_f.div(one.sub(cv.alpha)));
                 let g_alpha_f = L::select(live, g_alpha_f, zero);
                 prefix_f_next.store_where(ok, prefix_f, &mut tg.prefix_f[lp..]);
-                g_alpha_all = g_alpha.add(g_alpha_f);
-                g_sigma_f = Some(zero.sub(cv.alpha.mul(g_alpha_f)));
-            }
-            acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha_all));
-            let g_sigma_all = zero.sub(cv.alpha.mul(g_alpha_all));
-            let dx = cv.dx;
-            let dy = grp.y as Real - s.xy.y;
-            let d_mean = [
-                L::splat(a).mul(dx).add(L::splat(b * dy)),
-                L::splat(b).mul(dx).add(L::splat(c * dy)),
-            ];
-            for (i, d) in d_mean.into_iter().enumerate() {
-                acc[slot::X + i] = acc[slot::X + i].sub(d.mul(g_sigma));
-                if let Some(g_sigma_f) = g_sigma_f {
+                acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha_f));
+                let g_sigma_f = zero.sub(cv.alpha.mul(g_alpha_f));
+                for (i, d) in d_mean.into_iter().enumerate() {
                     let at = slot::FEATURE_X + i;
                     acc[at] = acc[at].sub(d.mul(g_sigma_f));
                 }
-            }
-            let d_conic = [
-                half.mul(dx).mul(dx),
-                dx.mul(L::splat(dy)),
-                L::splat(0.5 * dy * dy),
-            ];
-            for (i, d) in d_conic.into_iter().enumerate() {
-                acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma_all));
+                for (i, d) in d_conic.into_iter().enumerate() {
+                    acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma_f));
+                }
             }
             next.store_where(ok, t, &mut tg.trans[lp..]);
             prefix_next.store_where(ok, prefix, &mut tg.prefix[lp..]);
