@@ -35,13 +35,15 @@ mod slot {
     pub const DEPTH: usize = 9;
     /// Sum of blending weights alpha * T (not a gradient: how much of the image it makes).
     pub const WEIGHT: usize = 10;
-    /// The feature loss's share of X and Y (which hold the other terms' alone: densification
-    /// reads those).
-    pub const FEATURE_X: usize = 11;
-    pub const FEATURE_Y: usize = 12;
-    pub const COUNT: usize = 13;
+    pub const COUNT: usize = 11;
 }
 const SLOTS: usize = slot::COUNT;
+
+/// A pair's feature slots: its K feature gradients, then the feature term's share of the
+/// centre's gradient (x, y), which X and Y leave out (densification reads those alone).
+fn feature_stride(k: usize) -> usize {
+    k + 2
+}
 
 /// How many Gaussians ahead the per-Gaussian sums prefetch their pairs' gradients.
 const PAIR_PREFETCH: usize = 4;
@@ -146,7 +148,7 @@ pub fn backward_into(
         kept_falloffs: opts.for_backward,
     };
     walk_layer(opts.simd, &job, &mut scratch.layer);
-    let ls = &scratch.layer;
+    let (ls, fs) = (&scratch.layer, feature_stride(k));
 
     // Only the rows of Gaussians on screen are written (every value of each); the others keep
     // what they held, stale (zeros in new arrays): no pass reads them (see `Gradients::rows`),
@@ -191,7 +193,7 @@ pub fn backward_into(
                         let pr = pr as usize;
                         prefetch(&ls.pair_grads[pr * SLOTS..][..SLOTS]);
                         if ls.pair_has_features[pr] {
-                            prefetch(&ls.pair_features[pr * k..][..k]);
+                            prefetch(&ls.pair_features[pr * fs..][..fs]);
                         }
                     }
                 }
@@ -211,11 +213,12 @@ pub fn backward_into(
                     sg.color += v3(slot::COLOR);
                     sg.depth += s[slot::DEPTH];
                     weight += s[slot::WEIGHT];
-                    feature_xy += V2::new(s[slot::FEATURE_X], s[slot::FEATURE_Y]);
                     if ls.pair_has_features[pr] {
-                        for (o, v) in feat_row.iter_mut().zip(&ls.pair_features[pr * k..][..k]) {
+                        let f = &ls.pair_features[pr * fs..][..fs];
+                        for (o, v) in feat_row.iter_mut().zip(&f[..k]) {
                             *o += v;
                         }
+                        feature_xy += V2::new(f[k], f[k + 1]);
                     }
                 }
                 // Densification reads the screen-space gradient of the colour, depth and alpha
@@ -263,7 +266,7 @@ fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
         cursor,
     } = ls;
     pair_grads.resize(pairs * SLOTS, 0.0);
-    pair_features.resize(pairs * k, 0.0);
+    pair_features.resize(pairs * feature_stride(k), 0.0);
     pair_has_features.resize(pairs, false);
     let mut tiles = Vec::with_capacity(layer.grid.len());
     let mut rest = PairSlots {
@@ -272,7 +275,7 @@ fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
         has_features: pair_has_features,
     };
     for t in 0..layer.grid.len() {
-        let (head, tail) = rest.split_at(bins.list(t).len(), k);
+        let (head, tail) = rest.split_at(bins.list(t).len(), feature_stride(k));
         tiles.push(head);
         rest = tail;
     }
@@ -310,16 +313,16 @@ fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
 struct PairSlots<'a> {
     /// [pairs, SLOTS]
     grads: &'a mut [Real],
-    /// [pairs, K]
+    /// [pairs, feature_stride(K)]
     features: &'a mut [Real],
     has_features: &'a mut [bool],
 }
 
 impl<'a> PairSlots<'a> {
-    /// The first `n` pairs, and the rest (`k` feature channels a pair).
-    fn split_at(self, n: usize, k: usize) -> (PairSlots<'a>, PairSlots<'a>) {
+    /// The first `n` pairs, and the rest (`fs` feature slots a pair).
+    fn split_at(self, n: usize, fs: usize) -> (PairSlots<'a>, PairSlots<'a>) {
         let (g, g_rest) = self.grads.split_at_mut(n * SLOTS);
-        let (f, f_rest) = self.features.split_at_mut(n * k);
+        let (f, f_rest) = self.features.split_at_mut(n * fs);
         let (h, h_rest) = self.has_features.split_at_mut(n);
         (
             PairSlots {
@@ -486,7 +489,8 @@ fn walk<L: Lanes, const ALPHA: bool>(
         let f = &job.features[gi as usize * k..][..k];
         let slot = &mut slots.grads[j * SLOTS..][..SLOTS];
         slot.fill(0.0);
-        let feat_slot = &mut slots.features[j * k..][..k];
+        let fs = feature_stride(k);
+        let (feat_slot, feat_xy) = slots.features[j * fs..][..fs].split_at_mut(k);
         let has_features = &mut slots.has_features[j];
         let color = [
             L::splat(s.color.x),
@@ -496,6 +500,7 @@ fn walk<L: Lanes, const ALPHA: bool>(
         let depth = L::splat(s.depth);
         let (a, b, c) = (s.conic.x, s.conic.y, s.conic.z);
         let mut acc = [zero; SLOTS];
+        let mut acc_xy = [zero; 2];
         let mut touched = false;
         for_each_group(s, &r, |grp| {
             let lp = grp.lp;
@@ -603,9 +608,8 @@ fn walk<L: Lanes, const ALPHA: bool>(
                 prefix_f_next.store_where(ok, prefix_f, &mut tg.prefix_f[lp..]);
                 acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha_f));
                 let g_sigma_f = zero.sub(cv.alpha.mul(g_alpha_f));
-                for (i, d) in d_mean.into_iter().enumerate() {
-                    let at = slot::FEATURE_X + i;
-                    acc[at] = acc[at].sub(d.mul(g_sigma_f));
+                for (a, d) in acc_xy.iter_mut().zip(d_mean) {
+                    *a = a.sub(d.mul(g_sigma_f));
                 }
                 for (i, d) in d_conic.into_iter().enumerate() {
                     acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma_f));
@@ -624,6 +628,10 @@ fn walk<L: Lanes, const ALPHA: bool>(
         slot[..8].copy_from_slice(&L::hsum8(first.try_into().unwrap()));
         for (o, v) in slot[8..].iter_mut().zip(rest) {
             *o = v.hsum();
+        }
+        if *has_features {
+            feat_xy[0] = acc_xy[0].hsum();
+            feat_xy[1] = acc_xy[1].hsum();
         }
     }
 }
