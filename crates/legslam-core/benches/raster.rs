@@ -1,8 +1,8 @@
 //! Rasterizer benchmark on a realistic scene: one Gaussian per valid pixel of a real 640x480
 //! 7-Scenes depth frame (from `../shared/data`, beside the checkout), rendered from a view
 //! 5 cm and 2 degrees off the frame's own, at 640x480, for K = 0 and 64 on 1 and 2 threads;
-//! K = 64 both at every pixel and at every 4th pixel of every 4th row (160x120, `feature_scale`
-//! 4: about the feature target's own resolution, as the mapper trains them).
+//! K = 64 both at every pixel and 4 times coarser (160x120, `feature_scale` 4: about the
+//! feature target's own resolution, as the mapper trains them).
 //! Without the data folder a synthetic wall of the same size stands in. Each case runs the
 //! portable compositing and the AVX2 one (where the CPU has it) alternately; the ratio is the
 //! speed-up over the portable path.

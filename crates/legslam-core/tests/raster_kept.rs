@@ -1,7 +1,7 @@
 //! The backward pass reading the falloffs a training render kept (`for_backward`) against the
 //! backward pass evaluating them again: every gradient the same bits, through each compositing
-//! implementation the machine has, on random and hard scenes, with features at every pixel and
-//! at every s-th one, and with partial tiles.
+//! implementation the machine has, on random and hard scenes, with features in the main layer
+//! and in a coarser one, and with partial tiles.
 
 mod common;
 
@@ -16,7 +16,6 @@ fn kept_falloffs_give_the_gradients_of_evaluated_ones() {
                 sh_degree: deg,
                 simd,
                 feature_scale: scale,
-                feature_offset: [scale - 1, 0],
                 for_backward,
                 ..Default::default()
             };

@@ -25,7 +25,7 @@ fn reused_buffers_give_what_fresh_ones_give() {
         (2, 50, 32, 24, 6),
         (3, 200, 48, 40, 0),
         (4, 600, 80, 60, 3),
-        // A few Gaussians, features at every other pixel: most tiles have nothing to composite.
+        // A few Gaussians, features in a coarser layer: most tiles have nothing to composite.
         (5, 3, 64, 48, 4),
     ]
     .into_iter()
@@ -38,7 +38,7 @@ fn reused_buffers_give_what_fresh_ones_give() {
         scenes.push((6 + i as u64, s));
     }
     let mut visible = Vec::new();
-    // Features alternate between every pixel and every other pixel of every other row.
+    // Features alternate between the main layer and a coarser one of their own.
     let mut reused = Rendered::default();
     for (seed, s) in scenes {
         let (w, h, k) = (s.intr.width, s.intr.height, s.k);

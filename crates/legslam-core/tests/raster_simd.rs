@@ -21,7 +21,6 @@ fn run(s: &Scene, sh_degree: usize, scale: usize, simd: Simd, seed: u64) -> (Ren
         sh_degree,
         simd,
         feature_scale: scale,
-        feature_offset: [(seed as usize) % scale, scale / 2],
         for_backward: seed % 2 == 0,
         ..Default::default()
     };

@@ -1,6 +1,6 @@
 //! The rasterizer gives the same bits on any number of threads: every image and every gradient,
 //! the pose's included (summed per fixed chunk of Gaussians, in order), on a scene of several
-//! chunks, with the features at every other pixel, on the portable path and on the CPU's vector
+//! chunks, with the features on a coarser layer, on the portable path and on the CPU's vector
 //! paths where it has them.
 
 mod common;
@@ -17,7 +17,6 @@ fn any_thread_count_gives_the_same_bits() {
             sh_degree: 3,
             simd,
             feature_scale: 2,
-            feature_offset: [1, 0],
             for_backward: true,
             ..Default::default()
         };

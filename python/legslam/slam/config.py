@@ -176,9 +176,8 @@ class SLAMConfig:
     #: gave a better map (22.9 against 22.6 dB) from a quarter of the Gaussians, 2.3x faster.
     grow_width: int = 160
     #: Language features train at the coarsest pyramid level at least this wide, and at least
-    #: one level below the colour (at most two), rendered at every 2nd (or 4th) pixel of every
-    #: 2nd (4th) row of the colour's render: their target is the encoder's patch grid (16x16)
-    #: upsampled, so finer pixels add cost, not information. A 640-wide input trains
+    #: one level below the colour (at most two): their target is the encoder's patch grid
+    #: (16x16) upsampled, so finer pixels add cost, not information. A 640-wide input trains
     #: them at 160; a 600-wide one (whose colour trains at full resolution) at 150 rather than
     #: 300: on Replica renders real time gained 0.2-1.3 dB and synchronous runs were a fifth to
     #: a quarter faster (0-0.4 dB less), with the same held-out feature agreement (README, *At

@@ -62,31 +62,15 @@ impl FeatureGrid {
         out
     }
 
-    /// `upsample` into a reused buffer.
+    /// `upsample` into a reused buffer, rows in parallel (every mapping iteration with
+    /// features makes one).
     pub fn upsample_into(&self, width: usize, height: usize, out: &mut Vec<Real>) {
-        self.sample_every_into(width, height, 1, [0, 0], out)
-    }
-
-    /// The target of a `width` x `height` image at every `s`-th pixel of every `s`-th row from
-    /// `offset` (the feature image a render with that `feature_scale` and `feature_offset`
-    /// makes), [height / s, width / s, k], into a reused buffer, rows in parallel (every
-    /// mapping iteration with features makes one).
-    pub fn sample_every_into(
-        &self,
-        width: usize,
-        height: usize,
-        s: usize,
-        offset: [usize; 2],
-        out: &mut Vec<Real>,
-    ) {
         let k = self.k.max(1);
-        let (fw, fh) = (width / s, height / s);
-        out.resize(fw * fh * self.k, 0.0);
-        out.par_chunks_mut((fw * k).max(1))
+        out.resize(width * height * self.k, 0.0);
+        out.par_chunks_mut((width * k).max(1))
             .enumerate()
-            .for_each(|(j, row)| {
-                for (i, o) in row.chunks_exact_mut(k).enumerate() {
-                    let (x, y) = (s * i + offset[0], s * j + offset[1]);
+            .for_each(|(y, row)| {
+                for (x, o) in row.chunks_exact_mut(k).enumerate() {
                     self.sample(x as Real, y as Real, width, height, o);
                 }
             });
@@ -125,27 +109,6 @@ mod tests {
             }
         }
         assert!(g.upsample(0, 0).is_empty());
-    }
-
-    #[test]
-    fn sampling_every_s_th_pixel_is_the_upsampled_targets_pixels() {
-        let (gw, gh, k) = (4, 3, 2);
-        let data: Vec<Real> = (0..gw * gh * k).map(|i| (i as Real * 0.61).cos()).collect();
-        let g = FeatureGrid::new(data, gw, gh, k).unwrap();
-        let (w, h) = (23, 17);
-        let up = g.upsample(w, h);
-        let mut sampled = Vec::new();
-        for (s, offset) in [(2, [1, 0]), (3, [2, 1]), (4, [0, 3])] {
-            g.sample_every_into(w, h, s, offset, &mut sampled);
-            let (fw, fh) = (w / s, h / s);
-            assert_eq!(sampled.len(), fw * fh * k);
-            for j in 0..fh {
-                for i in 0..fw {
-                    let p = (s * j + offset[1]) * w + s * i + offset[0];
-                    assert_eq!(&sampled[(j * fw + i) * k..][..k], &up[p * k..][..k]);
-                }
-            }
-        }
     }
 
     #[test]

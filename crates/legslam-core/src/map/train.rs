@@ -31,9 +31,8 @@ pub struct MapperConfig {
     /// A keyframe's first `uses_per_level` uses are at the coarsest level, the next at the
     /// level below, and so on down to `finest_level`.
     pub uses_per_level: usize,
-    /// Features are trained this many pyramid levels below the colour (coarser, at most at the
-    /// coarsest level): rendered at every 2^offset-th pixel of every 2^offset-th row of the
-    /// colour's render, against the target at that level's size.
+    /// Features are trained this many pyramid levels below the colour (coarser), at most at
+    /// the coarsest level.
     pub feature_level_offset: usize,
     /// Keyframes drawn from: the most recent this many ...
     pub window: usize,
@@ -419,9 +418,9 @@ impl Mapper {
             .saturating_sub(kf.uses / c.uses_per_level.max(1))
             .max(c.finest_level.min(coarsest))
             .max(kf.finest_kept());
-        // Features are rendered `feature_level_offset` levels coarser, sampled in the colour's
-        // pass: their target is an upsampled patch grid, and K channels cost K times a colour
-        // channel.
+        // Features are rendered `feature_level_offset` levels coarser, from the colour pass's
+        // projection: their target is an upsampled patch grid, and K channels cost K times a
+        // colour channel.
         let lf = (li + c.feature_level_offset).min(coarsest);
         kf.uses += 1;
         let kf = &self.keyframes[ki];
@@ -432,17 +431,8 @@ impl Mapper {
 
         let t = Instant::now();
         let cam = camera(&kf.pose, intr)?;
-        // A pixel at random in each block of s x s carries the features: over the iterations
-        // every Gaussian is trained, not only those that cover a fixed one in s^2.
-        let scale = 1 << (lf - li);
-        let feature_offset = if with_features && scale > 1 {
-            [self.rng.below(scale), self.rng.below(scale)]
-        } else {
-            [0, 0]
-        };
         let opts = RenderOptions {
-            feature_scale: scale,
-            feature_offset,
+            feature_scale: 1 << (lf - li),
             for_backward: true,
             ..self.options(true, with_features)
         };
@@ -463,7 +453,7 @@ impl Mapper {
         sc.d_feat
             .resize(if with_features { fw * fh * k } else { 0 }, 0.0);
         if let (true, Some(g)) = (with_features, kf.features.as_ref()) {
-            g.sample_every_into(w, h, scale, feature_offset, &mut sc.target);
+            g.upsample_into(fw, fh, &mut sc.target);
         }
         // The loss sees the render as this keyframe's exposure makes it (the first keyframe's
         // exposure is the map's own).

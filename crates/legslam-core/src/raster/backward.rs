@@ -10,14 +10,13 @@
 use rayon::prelude::*;
 
 use super::composite::{
-    cover_kept, for_each_group, prefetch, prefetch_ahead, Sampling, TileRect, TileSampling,
-    TILE_LANES,
+    cover_kept, for_each_group, prefetch, prefetch_ahead, TileRect, TILE_LANES,
 };
 use super::forward::{split_chunks, Layer};
 use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{V2, V3};
 use super::project::View;
-use super::project_backward::{backward_task, BlockGrads, ScreenGrads};
+use super::project_backward::{backward_task, conic_to_cov_grad, BlockGrads, ScreenGrads};
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
 use crate::optim::rows_in;
@@ -38,12 +37,6 @@ mod slot {
     pub const COUNT: usize = 11;
 }
 const SLOTS: usize = slot::COUNT;
-
-/// A pair's feature slots: its K feature gradients, then the feature term's share of the
-/// centre's gradient (x, y), which X and Y leave out (densification reads those alone).
-fn feature_stride(k: usize) -> usize {
-    k + 2
-}
 
 /// How many Gaussians ahead the per-Gaussian sums prefetch their pairs' gradients.
 const PAIR_PREFETCH: usize = 4;
@@ -69,19 +62,14 @@ fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> 
 /// megabytes per iteration.
 #[derive(Default)]
 pub struct BackwardScratch {
-    layer: LayerScratch,
+    main: LayerScratch,
+    coarse: LayerScratch,
 }
 
-/// The layer's per-pair gradients, and each Gaussian's pairs.
+/// One layer's per-pair gradients, and each Gaussian's pairs.
 #[derive(Default)]
 struct LayerScratch {
-    /// [pairs, SLOTS], dense: the per-Gaussian sums read every pair's.
     pair_grads: Vec<Real>,
-    /// [pairs, K]: a pair's features' gradient, where `pair_has_features` says it has one
-    /// (otherwise stale, read as zeros: with features at every s-th pixel, many pairs reach
-    /// none).
-    pair_features: Vec<Real>,
-    pair_has_features: Vec<bool>,
     /// Gaussian i's pairs are `g_pairs[g_start[i]..g_start[i + 1]]`, in tile order.
     g_start: Vec<usize>,
     g_pairs: Vec<u32>,
@@ -137,18 +125,46 @@ pub fn backward_into(
         opts.features && k > 0,
         feature_len,
     )?;
-    let job = TileJob {
+    let cfg = &opts.config;
+    let coarse = !st.coarse.splats.is_empty();
+
+    // The main layer, then the features' own.
+    let main = TileJob {
         layer: &st.main,
         features: g.features,
-        rendered: [&r.color, &r.depth, &r.features],
-        grads: *grads,
-        k,
-        sampling: st.sampling,
-        cfg: &opts.config,
+        rendered: [&r.color, &r.depth, if coarse { &[] } else { &r.features }],
+        grads: ImageGrads {
+            features: if coarse { None } else { grads.features },
+            ..*grads
+        },
+        k: if coarse { 0 } else { k },
+        colour: true,
+        cfg,
         kept_falloffs: opts.for_backward,
     };
-    walk_layer(opts.simd, &job, &mut scratch.layer);
-    let (ls, fs) = (&scratch.layer, feature_stride(k));
+    walk_layer(opts.simd, &main, &mut scratch.main);
+    if coarse {
+        let features = TileJob {
+            layer: &st.coarse,
+            features: g.features,
+            rendered: [&[], &[], &r.features],
+            grads: ImageGrads {
+                features: grads.features,
+                ..Default::default()
+            },
+            k,
+            colour: false,
+            cfg,
+            kept_falloffs: opts.for_backward,
+        };
+        walk_layer(opts.simd, &features, &mut scratch.coarse);
+    }
+    let scale = opts.feature_scale as Real;
+    let strides = [SLOTS + main.k, SLOTS + k];
+    let layers = [&st.main, &st.coarse];
+    let layer_scratch = [&scratch.main, &scratch.coarse];
+    // The layers this pass walked: the main one, and the features' own when coarser.
+    let layers_walked = 1 + usize::from(coarse);
 
     // Only the rows of Gaussians on screen are written (every value of each); the others keep
     // what they held, stale (zeros in new arrays): no pass reads them (see `Gradients::rows`),
@@ -160,7 +176,11 @@ pub fn backward_into(
     for (v, w) in out.arrays_mut().into_iter().zip(widths) {
         v.resize(n * w, 0.0);
     }
-    let on_screen = |i: usize| st.main.rects.get(i).is_some_and(|r| rect_area(r) > 0);
+    let on_screen = |i: usize| {
+        layers
+            .iter()
+            .any(|l| l.rects.get(i).is_some_and(|r| rect_area(r) > 0))
+    };
     let rows: Vec<u32> = (0..n as u32).filter(|&i| on_screen(i as usize)).collect();
     out.pose = [0.0; 6];
     const CHUNK: usize = 1024;
@@ -187,47 +207,53 @@ pub fn backward_into(
             let mut on = vec![false; len];
             let mine = rows_in(&rows, first, CHUNK);
             for (at, &i) in mine.iter().enumerate() {
-                // A Gaussian's pairs lie anywhere in the per-pair buffer (in tile order).
+                // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
                 if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
-                    for &pr in ls.pairs(ahead as usize) {
-                        let pr = pr as usize;
-                        prefetch(&ls.pair_grads[pr * SLOTS..][..SLOTS]);
-                        if ls.pair_has_features[pr] {
-                            prefetch(&ls.pair_features[pr * fs..][..fs]);
+                    for (ls, stride) in layer_scratch.iter().zip(strides).take(layers_walked) {
+                        for &pr in ls.pairs(ahead as usize) {
+                            prefetch(&ls.pair_grads[pr as usize * stride..][..stride]);
                         }
                     }
                 }
                 let (i, li) = (i as usize, i as usize - first);
-                // The pairs in tile order, so that the sums are deterministic.
-                let mut sg = ScreenGrads::default();
-                let (mut weight, mut feature_xy) = (0.0, V2::ZERO);
+                // Each layer's pairs, in tile order, so that the sums are deterministic.
+                let mut sums = [ScreenGrads::default(); 2];
+                let mut weight = 0.0;
                 let feat_row = &mut gfeat[li * kf..][..kf];
                 feat_row.fill(0.0);
-                for &pr in ls.pairs(i) {
-                    let pr = pr as usize;
-                    let s = &ls.pair_grads[pr * SLOTS..][..SLOTS];
-                    let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
-                    sg.xy += V2::new(s[slot::X], s[slot::Y]);
-                    sg.conic += v3(slot::CONIC);
-                    sg.opacity += s[slot::OPACITY];
-                    sg.color += v3(slot::COLOR);
-                    sg.depth += s[slot::DEPTH];
-                    weight += s[slot::WEIGHT];
-                    if ls.pair_has_features[pr] {
-                        let f = &ls.pair_features[pr * fs..][..fs];
-                        for (o, v) in feat_row.iter_mut().zip(&f[..k]) {
+                for (l, sg) in sums.iter_mut().enumerate().take(layers_walked) {
+                    let ls = layer_scratch[l];
+                    let stride = strides[l];
+                    for &pr in ls.pairs(i) {
+                        let s = &ls.pair_grads[pr as usize * stride..][..stride];
+                        let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
+                        sg.xy += V2::new(s[slot::X], s[slot::Y]);
+                        sg.conic += v3(slot::CONIC);
+                        sg.opacity += s[slot::OPACITY];
+                        sg.color += v3(slot::COLOR);
+                        sg.depth += s[slot::DEPTH];
+                        if l == 0 {
+                            weight += s[slot::WEIGHT];
+                        }
+                        for (o, v) in feat_row.iter_mut().zip(&s[SLOTS..]) {
                             *o += v;
                         }
-                        feature_xy += V2::new(f[k], f[k + 1]);
                     }
                 }
-                // Densification reads the screen-space gradient of the colour, depth and alpha
-                // terms alone (the features' would grow the map for a loss that a coarse patch
-                // grid makes).
+                let [mut sg, low] = sums;
+                // Densification reads the main layer's screen-space gradient alone.
                 gm2[2 * li] = sg.xy.x;
                 gm2[2 * li + 1] = sg.xy.y;
                 gw[li] = weight;
-                sg.xy += feature_xy;
+                if coarse {
+                    // The coarse splat's centre is (xy + 0.5) / s - 0.5 and its covariance
+                    // (cov2d - dilation) / s^2 + dilation.
+                    sg.xy += low.xy / scale;
+                    sg.opacity += low.opacity;
+                    let gc = conic_to_cov_grad(st.coarse.splats[i].conic, low.conic);
+                    let s2 = scale * scale;
+                    sg.cov += V3::new(gc[0][0], gc[0][1], gc[1][1]) / s2;
+                }
                 screen[li] = sg;
                 on[li] = true;
             }
@@ -256,35 +282,27 @@ pub fn backward_into(
 fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
     let layer = job.layer;
     let bins = &layer.bins;
-    let (pairs, k) = (bins.pair_gauss.len(), job.k);
+    let stride = SLOTS + job.k;
     let LayerScratch {
         pair_grads,
-        pair_features,
-        pair_has_features,
         g_start,
         g_pairs,
         cursor,
     } = ls;
-    pair_grads.resize(pairs * SLOTS, 0.0);
-    pair_features.resize(pairs * feature_stride(k), 0.0);
-    pair_has_features.resize(pairs, false);
-    let mut tiles = Vec::with_capacity(layer.grid.len());
-    let mut rest = PairSlots {
-        grads: pair_grads,
-        features: pair_features,
-        has_features: pair_has_features,
-    };
+    pair_grads.resize(bins.pair_gauss.len() * stride, 0.0);
+    let mut tile_slices = Vec::with_capacity(layer.grid.len());
+    let mut rest = pair_grads.as_mut_slice();
     for t in 0..layer.grid.len() {
-        let (head, tail) = rest.split_at(bins.list(t).len(), feature_stride(k));
-        tiles.push(head);
+        let (head, tail) = rest.split_at_mut(bins.list(t).len() * stride);
+        tile_slices.push(head);
         rest = tail;
     }
     let walk = || {
-        tiles.into_par_iter().enumerate().for_each_init(
+        tile_slices.into_par_iter().enumerate().for_each_init(
             || Box::new(TileGrads::default()),
-            |tg, (t, mut slots)| {
-                if !slots.has_features.is_empty() {
-                    tile_backward(simd, job, t, tg, &mut slots);
+            |tg, (t, slots)| {
+                if !slots.is_empty() {
+                    tile_backward(simd, job, t, tg, slots);
                 }
             },
         )
@@ -309,36 +327,6 @@ fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
     rayon::join(walk, list);
 }
 
-/// Consecutive pairs' gradient slots.
-struct PairSlots<'a> {
-    /// [pairs, SLOTS]
-    grads: &'a mut [Real],
-    /// [pairs, feature_stride(K)]
-    features: &'a mut [Real],
-    has_features: &'a mut [bool],
-}
-
-impl<'a> PairSlots<'a> {
-    /// The first `n` pairs, and the rest (`fs` feature slots a pair).
-    fn split_at(self, n: usize, fs: usize) -> (PairSlots<'a>, PairSlots<'a>) {
-        let (g, g_rest) = self.grads.split_at_mut(n * SLOTS);
-        let (f, f_rest) = self.features.split_at_mut(n * fs);
-        let (h, h_rest) = self.has_features.split_at_mut(n);
-        (
-            PairSlots {
-                grads: g,
-                features: f,
-                has_features: h,
-            },
-            PairSlots {
-                grads: g_rest,
-                features: f_rest,
-                has_features: h_rest,
-            },
-        )
-    }
-}
-
 /// What every tile of one layer's backward walk reads.
 struct TileJob<'a> {
     layer: &'a Layer,
@@ -349,8 +337,8 @@ struct TileJob<'a> {
     grads: ImageGrads<'a>,
     /// Feature channels the layer composited.
     k: usize,
-    /// Which pixels composited the features.
-    sampling: Sampling,
+    /// Whether the layer composited colour and depth (the main layer does).
+    colour: bool,
     cfg: &'a RasterConfig,
     /// Whether the forward pass kept the layer's falloffs.
     kept_falloffs: bool,
@@ -362,17 +350,14 @@ struct TileGrads {
     color: [[Real; TILE_LANES]; 3],
     depth: [Real; TILE_LANES],
     alpha: [Real; TILE_LANES],
-    /// Sum over colour, depth and alpha of gradient x final value.
+    /// Sum over channels of gradient x final value.
     total: [Real; TILE_LANES],
-    /// The same over the feature channels, where the pixel carries features.
-    total_f: [Real; TILE_LANES],
     /// Final transmittance, and how many Gaussians of the list the pixel composited.
     t_final: [Real; TILE_LANES],
     end: [u32; TILE_LANES],
     /// Transmittance before the current Gaussian, and the running sum of gradient x value.
     trans: [Real; TILE_LANES],
     prefix: [Real; TILE_LANES],
-    prefix_f: [Real; TILE_LANES],
 }
 
 impl Default for TileGrads {
@@ -382,12 +367,10 @@ impl Default for TileGrads {
             depth: [0.0; TILE_LANES],
             alpha: [0.0; TILE_LANES],
             total: [0.0; TILE_LANES],
-            total_f: [0.0; TILE_LANES],
             t_final: [0.0; TILE_LANES],
             end: [0; TILE_LANES],
             trans: [0.0; TILE_LANES],
             prefix: [0.0; TILE_LANES],
-            prefix_f: [0.0; TILE_LANES],
         }
     }
 }
@@ -395,14 +378,12 @@ impl Default for TileGrads {
 impl TileGrads {
     /// Gathers tile `r`'s pixels (pixels outside the image composite nothing).
     #[inline(always)]
-    fn load<L: Lanes>(&mut self, job: &TileJob, r: &TileRect, sampled: &TileSampling) {
+    fn load<L: Lanes>(&mut self, job: &TileJob, r: &TileRect) {
         let (w, k, st, ig) = (job.layer.width, job.k, job.layer, job.grads);
-        let fw = job.sampling.width;
         let [color, depth, features] = job.rendered;
         self.end.fill(0);
         self.trans.fill(1.0);
         self.prefix.fill(0.0);
-        self.prefix_f.fill(0.0);
         for y in r.y0..r.y_end {
             for x in r.x0..r.x_end {
                 let (p, lp) = (y * w + x, (y - r.y0) * TILE + (x - r.x0));
@@ -415,13 +396,9 @@ impl TileGrads {
                 let gd = ig.depth.map_or(0.0, |v| v[p]);
                 self.depth[lp] = gd;
                 total += gd * depth.get(p).copied().unwrap_or(0.0);
-                self.total_f[lp] = match (ig.features, sampled.row[y - r.y0]) {
-                    (Some(gf), Some(fy)) if sampled.group(x - r.x0) & 1 != 0 => {
-                        let q = fy * fw + sampled.column[x - r.x0] as usize;
-                        L::dot(&gf[q * k..][..k], &features[q * k..][..k])
-                    }
-                    _ => 0.0,
-                };
+                if let Some(gf) = ig.features {
+                    total += L::dot(&gf[p * k..][..k], &features[p * k..][..k]);
+                }
                 self.total[lp] = total;
                 self.alpha[lp] = ig.alpha.map_or(0.0, |v| v[p]);
                 self.t_final[lp] = st.pixel_t[p];
@@ -432,50 +409,51 @@ impl TileGrads {
 }
 
 /// The backward walk over tile `t` through the implementation `simd` chose: `slots` receives
-/// the gradients of each pair of the tile's list.
-fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut PairSlots) {
+/// one gradient slot per pair of the tile's list.
+fn tile_backward(simd: Simd, job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
     dispatch!(
         simd,
         walk_tile(
             job: &TileJob,
             t: usize,
             tg: &mut TileGrads,
-            slots: &mut PairSlots,
+            slots: &mut [Real],
         )
     )
 }
 
-/// [`walk`] compiled for what the loss has: a training loss has no alpha term, whose gradients
-/// would be zeros walked through every group (the same values either way).
+/// [`walk`] compiled for what the layer's loss has: the features' own layer has no colour or
+/// depth, and a training loss no alpha term, whose gradients would be zeros walked through
+/// every group (the same values either way).
 #[inline(always)]
-fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut PairSlots) {
-    if job.grads.alpha.is_some() {
-        walk::<L, true>(job, t, tg, slots)
-    } else {
-        walk::<L, false>(job, t, tg, slots)
+fn walk_tile<L: Lanes>(job: &TileJob, t: usize, tg: &mut TileGrads, slots: &mut [Real]) {
+    match (job.colour, job.grads.alpha.is_some()) {
+        (true, true) => walk::<L, true, true>(job, t, tg, slots),
+        (true, false) => walk::<L, true, false>(job, t, tg, slots),
+        // The features' own layer: alpha is rendered in the main one.
+        (false, _) => walk::<L, false, false>(job, t, tg, slots),
     }
 }
 
 /// Walks tile `t`'s list front to back as the forward pass did (Gaussian-major, eight pixels
 /// at a time), turning d(loss)/d(pixel) into each pair's screen-space and feature gradients;
-/// `ALPHA`: the loss has an alpha term.
+/// `COLOUR`: the layer composites colour and depth, `ALPHA`: the loss has an alpha term.
 #[inline(always)]
-fn walk<L: Lanes, const ALPHA: bool>(
+fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
     job: &TileJob,
     t: usize,
     tg: &mut TileGrads,
-    slots: &mut PairSlots,
+    slots: &mut [Real],
 ) {
     let (st, k, cfg) = (job.layer, job.k, job.cfg);
+    let stride = SLOTS + k;
     let r = TileRect::new(&st.grid, t, st.width, st.height);
     let cols = r.columns();
-    let sampled = job.sampling.tile(&r);
-    tg.load::<L>(job, &r, &sampled);
+    tg.load::<L>(job, &r);
     let list = st.bins.list(t);
     // Past the last pixel's last contributor nothing has a gradient.
     let walked = tg.end.iter().copied().max().unwrap_or(0) as usize;
-    slots.grads[walked * SLOTS..].fill(0.0);
-    slots.has_features.fill(false);
+    slots[walked * stride..].fill(0.0);
     let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
     let gf = job.grads.features.filter(|_| k > 0);
     // The forward pass's falloffs, when it kept them: a group at a time, in the same order.
@@ -487,11 +465,9 @@ fn walk<L: Lanes, const ALPHA: bool>(
         prefetch_ahead(list, j, &st.splats, job.features, k);
         let s = &st.splats[gi as usize];
         let f = &job.features[gi as usize * k..][..k];
-        let slot = &mut slots.grads[j * SLOTS..][..SLOTS];
+        let slot = &mut slots[j * stride..][..stride];
         slot.fill(0.0);
-        let fs = feature_stride(k);
-        let (feat_slot, feat_xy) = slots.features[j * fs..][..fs].split_at_mut(k);
-        let has_features = &mut slots.has_features[j];
+        let (slot, feat_slot) = slot.split_at_mut(SLOTS);
         let color = [
             L::splat(s.color.x),
             L::splat(s.color.y),
@@ -500,7 +476,6 @@ fn walk<L: Lanes, const ALPHA: bool>(
         let depth = L::splat(s.depth);
         let (a, b, c) = (s.conic.x, s.conic.y, s.conic.z);
         let mut acc = [zero; SLOTS];
-        let mut acc_xy = [zero; 2];
         let mut touched = false;
         for_each_group(s, &r, |grp| {
             let lp = grp.lp;
@@ -524,28 +499,43 @@ fn walk<L: Lanes, const ALPHA: bool>(
             // Spelt out, as the splats above: `array::map` was not inlined into the AVX2 walk,
             // so these loads went through a call compiled without AVX2 that passes vectors in
             // memory (2% of the mapper bench's profile; the backward 3-6% faster without it).
-            let gc = [
-                L::load(&tg.color[0][lp..]),
-                L::load(&tg.color[1][lp..]),
-                L::load(&tg.color[2][lp..]),
-            ];
-            let gd = L::load(&tg.depth[lp..]);
-            let x_j = gc[0]
-                .mul(color[0])
-                .add(gc[1].mul(color[1]))
-                .add(gc[2].mul(color[2]))
-                .add(gd.mul(depth));
-            for ch in 0..3 {
-                acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
+            let mut x_j = zero;
+            if COLOUR {
+                let gc = [
+                    L::load(&tg.color[0][lp..]),
+                    L::load(&tg.color[1][lp..]),
+                    L::load(&tg.color[2][lp..]),
+                ];
+                let gd = L::load(&tg.depth[lp..]);
+                x_j = gc[0]
+                    .mul(color[0])
+                    .add(gc[1].mul(color[1]))
+                    .add(gc[2].mul(color[2]))
+                    .add(gd.mul(depth));
+                for ch in 0..3 {
+                    acc[slot::COLOR + ch] = acc[slot::COLOR + ch].add(wgt.mul(gc[ch]));
+                }
+                acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
+                acc[slot::WEIGHT] = acc[slot::WEIGHT].add(wgt);
             }
-            acc[slot::DEPTH] = acc[slot::DEPTH].add(wgt.mul(gd));
-            acc[slot::WEIGHT] = acc[slot::WEIGHT].add(wgt);
+            if let Some(gf) = gf {
+                let mut w = [0.0; LANES];
+                wgt.store(&mut w);
+                let mut dots = [0.0; LANES];
+                let mut bits = L::bits(ok);
+                let p0 = grp.y * st.width + r.x0 + grp.gx;
+                while bits != 0 {
+                    let l = bits.trailing_zeros() as usize;
+                    bits &= bits - 1;
+                    dots[l] = L::axpy_dot(feat_slot, w[l], &gf[(p0 + l) * k..][..k], f);
+                }
+                x_j = x_j.add(L::load(&dots));
+            }
             let prefix = L::load(&tg.prefix[lp..]);
             let prefix_next = prefix.add(wgt.mul(x_j));
             let next = t.mul(one.sub(cv.alpha));
             let total = L::load(&tg.total[lp..]);
-            // What lies behind this Gaussian, and d(loss)/d(its alpha): the colour, depth and
-            // alpha terms', then the features' where the group's pixels carry them.
+            // What lies behind this Gaussian, and d(loss)/d(its alpha).
             let mut behind = total.sub(prefix_next);
             let mut x_a = x_j;
             if ALPHA {
@@ -554,11 +544,10 @@ fn walk<L: Lanes, const ALPHA: bool>(
                 behind = behind.add(ga.mul(next.sub(t_final)));
                 x_a = x_j.add(ga);
             }
-            let live = L::and_not(ok, cv.capped);
             let g_alpha = t.mul(x_a).sub(behind.div(one.sub(cv.alpha)));
-            let g_alpha = L::select(live, g_alpha, zero);
-            let g_sigma = zero.sub(cv.alpha.mul(g_alpha));
+            let g_alpha = L::select(L::and_not(ok, cv.capped), g_alpha, zero);
             acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha));
+            let g_sigma = zero.sub(cv.alpha.mul(g_alpha));
             let dx = cv.dx;
             let dy = grp.y as Real - s.xy.y;
             let d_mean = [
@@ -576,45 +565,6 @@ fn walk<L: Lanes, const ALPHA: bool>(
             for (i, d) in d_conic.into_iter().enumerate() {
                 acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma));
             }
-            // The feature term, in the groups whose pixels carry features: its own share of
-            // d(loss)/d(alpha), added to the same slots (the centre's to slots of its own).
-            let feature_lanes = match sampled.row[grp.y - r.y0] {
-                Some(fy) if gf.is_some() => {
-                    Some(fy).zip(Some(sampled.group(grp.gx) & L::bits(ok)).filter(|&b| b != 0))
-                }
-                _ => None,
-            };
-            if let (Some(gf), Some((fy, mut bits))) = (gf, feature_lanes) {
-                let mut w = [0.0; LANES];
-                wgt.store(&mut w);
-                let mut dots = [0.0; LANES];
-                let fw = job.sampling.width;
-                if !*has_features {
-                    feat_slot.fill(0.0);
-                    *has_features = true;
-                }
-                while bits != 0 {
-                    let l = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    let q = fy * fw + sampled.column[grp.gx + l] as usize;
-                    dots[l] = L::axpy_dot(feat_slot, w[l], &gf[q * k..][..k], f);
-                }
-                let x_f = L::load(&dots);
-                let prefix_f = L::load(&tg.prefix_f[lp..]);
-                let prefix_f_next = prefix_f.add(wgt.mul(x_f));
-                let behind_f = L::load(&tg.total_f[lp..]).sub(prefix_f_next);
-                let g_alpha_f = t.mul(x_f).sub(behind_f.div(one.sub(cv.alpha)));
-                let g_alpha_f = L::select(live, g_alpha_f, zero);
-                prefix_f_next.store_where(ok, prefix_f, &mut tg.prefix_f[lp..]);
-                acc[slot::OPACITY] = acc[slot::OPACITY].add(cv.falloff.mul(g_alpha_f));
-                let g_sigma_f = zero.sub(cv.alpha.mul(g_alpha_f));
-                for (a, d) in acc_xy.iter_mut().zip(d_mean) {
-                    *a = a.sub(d.mul(g_sigma_f));
-                }
-                for (i, d) in d_conic.into_iter().enumerate() {
-                    acc[slot::CONIC + i] = acc[slot::CONIC + i].add(d.mul(g_sigma_f));
-                }
-            }
             next.store_where(ok, t, &mut tg.trans[lp..]);
             prefix_next.store_where(ok, prefix, &mut tg.prefix[lp..]);
         });
@@ -628,10 +578,6 @@ fn walk<L: Lanes, const ALPHA: bool>(
         slot[..8].copy_from_slice(&L::hsum8(first.try_into().unwrap()));
         for (o, v) in slot[8..].iter_mut().zip(rest) {
             *o = v.hsum();
-        }
-        if *has_features {
-            feat_xy[0] = acc_xy[0].hsum();
-            feat_xy[1] = acc_xy[1].hsum();
         }
     }
 }

@@ -42,88 +42,6 @@ impl TileRect {
     }
 }
 
-/// Which pixels of a render carry features: every `s`-th column of every `s`-th row from
-/// (`x0`, `y0`), so that the feature image's pixel (i, j) is the render's pixel (s i + x0,
-/// s j + y0), for a feature image of width / s by height / s (at `s` = 1, every pixel).
-/// Features sampled so cost a render (and its backward pass) their channels at those pixels
-/// alone: their coverage, alpha and transmittance are the colour's.
-#[derive(Clone, Copy, Debug, Default)]
-pub(crate) struct Sampling {
-    pub s: usize,
-    pub x0: usize,
-    pub y0: usize,
-    pub width: usize,
-    pub height: usize,
-}
-
-impl Sampling {
-    /// Every `s`-th pixel from `offset` (each below `s`) of a `width` x `height` render.
-    pub fn new(s: usize, offset: [usize; 2], width: usize, height: usize) -> Self {
-        Sampling {
-            s,
-            x0: offset[0],
-            y0: offset[1],
-            width: width / s,
-            height: height / s,
-        }
-    }
-
-    /// The index along an axis that `v` carries, if any: (v - first) / s below `len`.
-    #[inline(always)]
-    fn along(&self, v: usize, first: usize, len: usize) -> Option<usize> {
-        let d = v.checked_sub(first)?;
-        (d % self.s == 0 && d / self.s < len).then_some(d / self.s)
-    }
-
-    /// Tile `r`'s share.
-    pub fn tile(&self, r: &TileRect) -> TileSampling {
-        let mut t = TileSampling {
-            columns: 0,
-            column: [0; TILE + LANES],
-            row: [None; TILE],
-        };
-        for (i, c) in t.column.iter_mut().enumerate() {
-            let x = r.x0 + i;
-            if let Some(fx) = self.along(x, self.x0, self.width).filter(|_| x < r.x_end) {
-                t.columns |= 1 << i;
-                *c = fx as u32;
-            }
-        }
-        for (i, row) in t.row.iter_mut().enumerate() {
-            let y = r.y0 + i;
-            *row = self.along(y, self.y0, self.height).filter(|_| y < r.y_end);
-        }
-        t
-    }
-
-    /// The feature rows that the render's rows [y0, y_end) carry.
-    pub fn rows(&self, y0: usize, y_end: usize) -> std::ops::Range<usize> {
-        let (o, s) = (self.y0, self.s);
-        let lo = y0.saturating_sub(o).div_ceil(s);
-        let hi = y_end.saturating_sub(o).div_ceil(s).min(self.height);
-        lo.min(hi)..hi
-    }
-}
-
-/// A tile's part of a [`Sampling`], its divisions made once a tile instead of once a group of
-/// eight pixels (a division by a number known only at run time costs tens of cycles).
-pub(crate) struct TileSampling {
-    /// Bit i: the tile's column x0 + i carries features (i < TILE + LANES).
-    columns: u64,
-    /// Per column from the tile's first: its feature column, where it carries features.
-    pub column: [u32; TILE + LANES],
-    /// Per row of the tile: its feature row, if it carries features.
-    pub row: [Option<usize>; TILE],
-}
-
-impl TileSampling {
-    /// Which of the eight columns from the tile's column `gx` carry features (bit l: gx + l).
-    #[inline(always)]
-    pub fn group(&self, gx: usize) -> u32 {
-        (self.columns >> gx) as u32 & 0xff
-    }
-}
-
 /// One Gaussian over eight pixels of a row.
 pub(crate) struct Cover<L: Lanes> {
     /// Lanes inside the row's span whose alpha reaches `alpha_min`.
@@ -351,7 +269,7 @@ pub(crate) struct TileInputs<'a> {
     pub features: &'a [Real],
     /// Feature channels the layer composites.
     pub k: usize,
-    /// Whether the layer accumulates colour and depth (a render without either does not).
+    /// Whether the layer accumulates colour and depth (the features' own layer has none).
     pub colour: bool,
     pub cfg: &'a RasterConfig,
 }
@@ -359,20 +277,19 @@ pub(crate) struct TileInputs<'a> {
 /// Composites the tile's list `list` (front to back) into `acc`: Gaussian-major, so that only
 /// the pixels inside each Gaussian's span are visited, eight at a time; every pixel still sees
 /// its Gaussians in depth order. With `falloffs`, appends each group's exponential there (zero
-/// in the lanes not covered), for [`cover_kept`]. Features go to the pixels of `sampled`.
+/// in the lanes not covered), for [`cover_kept`].
 #[inline(always)]
 pub(crate) fn composite<L: Lanes>(
     acc: &mut TileAcc,
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
-    sampled: &TileSampling,
     falloffs: Option<&mut Vec<Real>>,
 ) {
     if inputs.colour {
-        composite_with::<L, true>(acc, inputs, list, r, sampled, falloffs)
+        composite_with::<L, true>(acc, inputs, list, r, falloffs)
     } else {
-        composite_with::<L, false>(acc, inputs, list, r, sampled, falloffs)
+        composite_with::<L, false>(acc, inputs, list, r, falloffs)
     }
 }
 
@@ -383,7 +300,6 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
-    sampled: &TileSampling,
     mut falloffs: Option<&mut Vec<Real>>,
 ) {
     let TileInputs {
@@ -443,14 +359,10 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             }
             next.store_where(add, t, &mut acc.trans[lp..]);
             L::set_where(add, j as u32 + 1, &mut acc.end[lp..]);
-            let feature_lanes = match sampled.row[g.y - r.y0] {
-                Some(_) if k > 0 => sampled.group(g.gx) & L::bits(add),
-                _ => 0,
-            };
-            if feature_lanes != 0 {
+            if k > 0 {
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
-                let mut bits = feature_lanes;
+                let mut bits = L::bits(add);
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;

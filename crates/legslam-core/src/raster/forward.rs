@@ -1,11 +1,10 @@
-//! Forward pass: project every Gaussian, bin into tiles, composite front to back. Colour, depth,
-//! alpha and features composite in one pass; features asked for at a coarser scale are
-//! accumulated at every `feature_scale`-th pixel of every `feature_scale`-th row only
-//! ([`Sampling`]).
+//! Forward pass: project every Gaussian, bin into tiles, composite front to back. Colour,
+//! depth and alpha composite in the main layer; features either there too or, when asked for
+//! at a coarser scale, in a layer of their own whose splats come from the same projection.
 
 use rayon::prelude::*;
 
-use super::composite::{composite, Sampling, TileAcc, TileInputs, TileRect, TileSampling};
+use super::composite::{composite, TileAcc, TileInputs, TileRect};
 use super::lanes::{dispatch, Simd};
 use super::math::{V2, V3};
 use super::project;
@@ -52,7 +51,7 @@ fn clip(lo: u32, hi: u32, start: usize, end: usize) -> std::ops::Range<usize> {
     first..(hi as usize).min(end).max(first)
 }
 
-/// A render's compositing layer: its size, splats, tile lists and what each pixel did.
+/// One compositing layer of a render: its size, splats, tile lists and what each pixel did.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Layer {
     pub width: usize,
@@ -82,14 +81,26 @@ impl Layer {
         self.splats.resize(n, Splat::default());
         self.rects.resize(n, [0; 4]);
     }
+
+    fn clear(&mut self) {
+        *self = Layer {
+            splats: std::mem::take(&mut self.splats),
+            rects: std::mem::take(&mut self.rects),
+            falloffs: std::mem::take(&mut self.falloffs),
+            ..Default::default()
+        };
+        self.splats.clear();
+        self.rects.clear();
+    }
 }
 
 /// What the backward pass needs from the forward pass.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct State {
+    /// Colour, depth, alpha, and the features unless they have a layer of their own.
     pub main: Layer,
-    /// The pixels that carry features.
-    pub sampling: Sampling,
+    /// The features alone, `feature_scale` times coarser (empty at scale 1).
+    pub coarse: Layer,
     pub options: RenderOptions,
 }
 
@@ -138,16 +149,19 @@ pub fn render_into(
             "feature_scale must be at least 1 and at most the image size, got {scale} for {w}x{h}"
         ));
     }
-    if opts.feature_offset.iter().any(|&o| o >= scale) {
-        return Err(format!(
-            "feature_offset must lie below feature_scale ({scale}), got {:?}",
-            opts.feature_offset
-        ));
-    }
+    let coarse = k > 0 && scale > 1;
     let st = &mut out.state;
     st.main.reset(w, h, g.len());
-    project::project(g, cam, opts, simd, &mut st.main, &mut out.radii);
+    if coarse {
+        st.coarse.reset(w / scale, h / scale, g.len());
+    } else {
+        st.coarse.clear();
+    }
+    let coarse_scale = coarse.then_some(scale);
+    let (main, low) = (&mut st.main, &mut st.coarse);
+    project::project(g, cam, opts, simd, coarse_scale, main, low, &mut out.radii);
     st.options = RenderOptions { simd, ..*opts };
+    let main_k = if coarse { 0 } else { k };
     // The compositing writes every pixel of each image it outputs, so a reused buffer is
     // resized, not cleared (64 features at 640x480 are 79 MB to zero).
     let outputs = |v: &mut Vec<Real>, on: bool, len: usize| {
@@ -156,33 +170,30 @@ pub fn render_into(
     outputs(&mut out.color, opts.color, w * h * 3);
     outputs(&mut out.depth, opts.depth, w * h);
     outputs(&mut out.alpha, opts.alpha, w * h);
-    // Without features the scale does not apply: the (empty) feature image is the render's size.
-    let sampling = if k > 0 {
-        Sampling::new(scale, opts.feature_offset, w, h)
+    let (fw, fh) = if coarse {
+        (w / scale, h / scale)
     } else {
-        Sampling::new(1, [0, 0], w, h)
+        (w, h)
     };
-    let (fw, fh) = (sampling.width, sampling.height);
-    st.sampling = sampling;
     outputs(&mut out.features, k > 0, fw * fh * k);
     let images = Images {
         color: &mut out.color,
         depth: &mut out.depth,
         alpha: &mut out.alpha,
-        features: &mut out.features,
+        features: if coarse { &mut [] } else { &mut out.features },
     };
     let keep = opts.for_backward;
     let cfg = &opts.config;
-    composite_layer(
-        &mut st.main,
-        simd,
-        g.features,
-        k,
-        sampling,
-        images,
-        cfg,
-        keep,
-    );
+    composite_layer(&mut st.main, simd, g.features, main_k, images, cfg, keep);
+    if coarse {
+        let images = Images {
+            color: &mut [],
+            depth: &mut [],
+            alpha: &mut [],
+            features: &mut out.features,
+        };
+        composite_layer(&mut st.coarse, simd, g.features, k, images, cfg, keep);
+    }
     out.width = w;
     out.height = h;
     out.num_features = k;
@@ -200,15 +211,13 @@ struct Images<'a> {
 }
 
 /// Bins a projected layer and composites it, one row of tiles at a time (its pixels are
-/// contiguous in every image), `k` feature channels of `features` ([N, k]) at the pixels of
-/// `sampling`; with `keep`, keeps the falloffs for the backward pass.
-#[allow(clippy::too_many_arguments)]
+/// contiguous in every image), `k` feature channels of `features` ([N, k]); with `keep`, keeps
+/// the falloffs for the backward pass.
 fn composite_layer(
     layer: &mut Layer,
     simd: Simd,
     features: &[Real],
     k: usize,
-    sampling: Sampling,
     images: Images,
     cfg: &RasterConfig,
     keep: bool,
@@ -227,20 +236,11 @@ fn composite_layer(
     let n = grid.tiles_y;
     // Colour and depth are accumulated only where they are output.
     let colour = !images.color.is_empty() || !images.depth.is_empty();
-    // Each row of tiles writes the feature rows its pixel rows carry.
-    let mut feature_rows = Vec::with_capacity(n);
-    let mut rest = images.features;
-    for ty in 0..n {
-        let fr = sampling.rows(ty * TILE, ((ty + 1) * TILE).min(h));
-        let (head, tail) = rest.split_at_mut((fr.end - fr.start) * sampling.width * k);
-        feature_rows.push((fr.start, head));
-        rest = tail;
-    }
     let outs: Vec<_> = split_chunks(images.color, rows * 3, n)
         .into_iter()
         .zip(split_chunks(images.depth, rows, n))
         .zip(split_chunks(images.alpha, rows, n))
-        .zip(feature_rows)
+        .zip(split_chunks(images.features, rows * k, n))
         .zip(split_chunks(&mut layer.pixel_end, rows, n))
         .zip(split_chunks(&mut layer.pixel_t, rows, n))
         .zip(layer.falloffs.iter_mut())
@@ -256,19 +256,18 @@ fn composite_layer(
         cfg,
     };
     outs.into_par_iter().for_each(
-        |(ty, (((((((col, dep), alp), (frow0, fea)), end), tr), fo), starts))| {
+        |(ty, (((((((col, dep), alp), fea), end), tr), fo), starts))| {
             let mut acc = TileAcc::new(k);
             fo.clear();
             for (tx, start) in starts.iter_mut().enumerate() {
                 let t = ty * grid.tiles_x + tx;
                 let r = TileRect::new(&grid, t, w, h);
                 let list = bins.list(t);
-                let sampled = sampling.tile(&r);
                 acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
                 *start = fo.len();
                 if !list.is_empty() {
                     let kept = keep.then_some(&mut *fo);
-                    composite_tile(simd, &mut acc, &inputs, list, &r, &sampled, kept);
+                    composite_tile(simd, &mut acc, &inputs, list, &r, kept);
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -285,12 +284,8 @@ fn composite_layer(
                         if !alp.is_empty() {
                             alp[p] = 1.0 - acc.trans[lp];
                         }
-                        if let (true, Some(fy)) = (k > 0, sampled.row[y - r.y0]) {
-                            if sampled.group(x - r.x0) & 1 != 0 {
-                                let fx = sampled.column[x - r.x0] as usize;
-                                let q = (fy - frow0) * sampling.width + fx;
-                                fea[q * k..][..k].copy_from_slice(&acc.feat[lp * k..][..k]);
-                            }
+                        if k > 0 {
+                            fea[p * k..][..k].copy_from_slice(&acc.feat[lp * k..][..k]);
                         }
                         end[p] = acc.end[lp];
                         tr[p] = acc.trans[lp];
@@ -308,7 +303,6 @@ fn composite_tile(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
-    sampled: &TileSampling,
     falloffs: Option<&mut Vec<Real>>,
 ) {
     dispatch!(
@@ -318,7 +312,6 @@ fn composite_tile(
             inputs: &TileInputs,
             list: &[u32],
             r: &TileRect,
-            sampled: &TileSampling,
             falloffs: Option<&mut Vec<Real>>,
         )
     )

@@ -162,21 +162,16 @@ pub struct RenderOptions {
     pub depth: bool,
     pub alpha: bool,
     pub features: bool,
-    /// Features are rendered at every `s`-th pixel of every `s`-th row, a width / s by
-    /// height / s image: a feature target holds little detail, and K channels cost K times a
-    /// colour channel. They come from the colour's pass, with its alpha and transmittance at
-    /// those pixels, so that they cost their channels alone.
+    /// Features are rendered this many times coarser than the other images (width / s by
+    /// height / s, intrinsics scaled about pixel centres) from the same projection: a feature
+    /// target holds little detail, and K channels cost K times a colour channel.
     pub feature_scale: usize,
-    /// The column and row of the first pixel with features (each below `feature_scale`): the
-    /// feature image's pixel (i, j) is the render's (s i + x0, s j + y0). A training loop
-    /// draws it at random, so that over its iterations every pixel is trained.
-    pub feature_offset: [usize; 2],
     pub config: RasterConfig,
     /// Which compositing implementation runs (the results are the same bits either way).
     pub simd: Simd,
     /// Keep what the backward pass would evaluate again: each walked group of eight pixels'
-    /// exponential (32 bytes a group; about 20 MB for a 320x240 render of the mapper bench's
-    /// map). A training loop's render asks for it, and its backward pass
+    /// exponential (32 bytes a group; about 27 MB for a 320x240 render of the mapper bench's map
+    /// with features at 160x120). A training loop's render asks for it, and its backward pass
     /// then skips the exponential (the same bits either way).
     pub for_backward: bool,
 }
@@ -190,7 +185,6 @@ impl Default for RenderOptions {
             alpha: true,
             features: true,
             feature_scale: 1,
-            feature_offset: [0, 0],
             config: RasterConfig::default(),
             simd: Simd::Auto,
             for_backward: false,
@@ -223,7 +217,7 @@ pub struct Rendered {
 impl Rendered {
     /// Number of (tile, Gaussian) pairs composited: the work the rasterizer did.
     pub fn num_pairs(&self) -> usize {
-        self.state.main.bins.pair_gauss.len()
+        self.state.main.bins.pair_gauss.len() + self.state.coarse.bins.pair_gauss.len()
     }
 }
 

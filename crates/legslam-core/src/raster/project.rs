@@ -86,7 +86,7 @@ fn pixels_lanes<L: Lanes>(x: L, y: L, ex: L, ey: L, (w, h): (usize, usize)) -> [
     [x0.to_u32(), y0.to_u32(), x1.to_u32(), y1.to_u32()]
 }
 
-/// The layer's grid and image size.
+/// One layer's grid and image size.
 #[derive(Clone, Copy)]
 struct Target {
     grid: Grid,
@@ -125,7 +125,12 @@ impl<'a> View<'a> {
 /// The forward pass's view, and where its splats go.
 struct Projector<'a> {
     view: View<'a>,
+    /// The cheap bound's dilation: large enough for the coarse layer's extents, whose
+    /// dilation is `scale`^2 times larger in main-layer pixels.
+    bound_dilation: Real,
     main: Target,
+    /// The features' layer and its scale, when it has one.
+    coarse: Option<(Target, Real)>,
 }
 
 /// A task's part of the outputs: Gaussians `first..first + splats.len()`.
@@ -133,40 +138,67 @@ struct Outputs<'a> {
     splats: &'a mut [Splat],
     rects: &'a mut [Rect],
     radii: &'a mut [Real],
+    low: Option<(&'a mut [Splat], &'a mut [Rect])>,
 }
 
-/// Projects every Gaussian into the layer's splats and rects (culled ones get an empty rect
-/// and keep a stale splat), and their screen radii into `radii`.
+/// Projects every Gaussian into the main layer's splats and rects (culled ones get an empty
+/// rect and keep a stale splat) and, with `coarse = Some(scale)`, into the coarse layer's as
+/// well; their main-layer screen radii into `radii`.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn project(
     g: &Gaussians,
     cam: &Camera,
     opts: &RenderOptions,
     simd: Simd,
-    layer: &mut Layer,
+    coarse: Option<usize>,
+    main: &mut Layer,
+    low: &mut Layer,
     radii: &mut Vec<Real>,
 ) {
+    let target = |l: &Layer| Target {
+        grid: l.grid,
+        size: (l.width, l.height),
+    };
     let p = Projector {
         view: View::new(g, cam, opts),
-        main: Target {
-            grid: layer.grid,
-            size: (layer.width, layer.height),
-        },
+        bound_dilation: opts.config.dilation * coarse.map_or(1, |s| s * s) as Real,
+        main: target(main),
+        coarse: coarse.map(|s| (target(low), s as Real)),
     };
     radii.resize(g.len(), 0.0);
-    layer
+    let tasks = main
         .splats
         .par_chunks_mut(CHUNK)
-        .zip(layer.rects.par_chunks_mut(CHUNK))
+        .zip(main.rects.par_chunks_mut(CHUNK))
         .zip(radii.par_chunks_mut(CHUNK))
-        .enumerate()
-        .for_each(|(c, ((splats, rects), radii))| {
+        .enumerate();
+    if coarse.is_some() {
+        let low_tasks = low
+            .splats
+            .par_chunks_mut(CHUNK)
+            .zip(low.rects.par_chunks_mut(CHUNK));
+        tasks
+            .zip(low_tasks)
+            .for_each(|((c, ((splats, rects), radii)), (ls, lr))| {
+                let out = Outputs {
+                    splats,
+                    rects,
+                    radii,
+                    low: Some((ls, lr)),
+                };
+                project_task(simd, &p, c * CHUNK, out);
+            });
+    } else {
+        tasks.for_each(|(c, ((splats, rects), radii))| {
             let out = Outputs {
                 splats,
                 rects,
                 radii,
+                low: None,
             };
             project_task(simd, &p, c * CHUNK, out);
         });
+    }
 }
 
 /// One task's Gaussians, a block of eight at a time, through the implementation `simd` chose.
@@ -322,7 +354,7 @@ fn bound<L: Lanes>(p: &Projector, ce: &Centre<L>) -> [L; 2] {
     let s2 = c(2.0).mul(ls[0].max(ls[1]).max(ls[2])).exp_wide();
     let level = ce.level.max(c(0.0));
     let z = ce.p_cam[2];
-    let dilation = c(p.view.cfg.dilation);
+    let dilation = c(p.bound_dilation);
     [
         half_bound(p.view.pin.fx, ce.clamped[0], z, s2, level, dilation),
         half_bound(p.view.pin.fy, ce.clamped[1], z, s2, level, dilation),
@@ -489,6 +521,16 @@ pub(crate) fn shape<L: Lanes>(p: &View, rows: &Rows, ce: &Centre<L>) -> Shape<L>
     }
 }
 
+/// A block's Gaussians in the coarse layer, lane by lane: which project there, their centres,
+/// conics, tile rects and pixel boxes.
+struct LowBlock {
+    ok: u32,
+    xy: [[Real; LANES]; 2],
+    conic: [[Real; LANES]; 3],
+    rects: [[u32; LANES]; 4],
+    pixels: [[u32; LANES]; 4],
+}
+
 /// Projects Gaussians `first..first + count` (`count` <= 8) into `out`'s entries from `at`.
 #[inline(always)]
 fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &mut Outputs) {
@@ -507,6 +549,9 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
         let o = at + l;
         out.rects[o] = [0; 4];
         out.radii[o] = 0.0;
+        if let Some((_, lr)) = out.low.as_mut() {
+            lr[o] = [0; 4];
+        }
         if depth_bits >> l & 1 != 0 && rect_area(&lane_rect(&bound_rects, l)) > 0 {
             near |= 1 << l;
         }
@@ -523,6 +568,38 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
     let (x, y) = (lanes(ce.xy[0]), lanes(ce.xy[1]));
     let (ex, ey) = (lanes(ext_x), lanes(ext_y));
     let ok = near & L::bits(sh.ok) & L::bits(c(0.0).lt(level));
+    // The same Gaussian in the coarse layer: centre (xy + 0.5) / s - 0.5, covariance
+    // (cov2d - dilation) / s^2 + dilation.
+    let low = if let Some((target, s)) = p.coarse {
+        let (scale, s2, dilation) = (c(s), c(s * s), c(v.cfg.dilation));
+        let cov = [
+            cxx.sub(dilation).div(s2).add(dilation),
+            sh.cov2d[1].div(s2),
+            cyy.sub(dilation).div(s2).add(dilation),
+        ];
+        let (low_ok, low_conic) = conic(cov);
+        let half = c(0.5);
+        let (lx, ly) = (
+            ce.xy[0].add(half).div(scale).sub(half),
+            ce.xy[1].add(half).div(scale).sub(half),
+        );
+        let (lex, ley) = (extent(level, cov[0]), extent(level, cov[2]));
+        // Spelt out, not closures or `array::map`, which are not always inlined into the AVX2
+        // code.
+        Some(LowBlock {
+            ok: L::bits(low_ok),
+            xy: [lanes(lx), lanes(ly)],
+            conic: [
+                lanes(low_conic[0]),
+                lanes(low_conic[1]),
+                lanes(low_conic[2]),
+            ],
+            rects: rect_lanes(&target.grid, lx, ly, lex, ley),
+            pixels: pixels_lanes(lx, ly, lex, ley, target.size),
+        })
+    } else {
+        None
+    };
     let color = if v.color {
         let col = colour(v, &rows, &ce.mean);
         let zero = c(0.0);
@@ -543,7 +620,10 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
         let o = at + l;
         let (xy, ext) = (V2::new(x[l], y[l]), V2::new(ex[l], ey[l]));
         let main_rect = lane_rect(&main_rects, l);
-        if rect_area(&main_rect) == 0 {
+        let low_rect = low
+            .as_ref()
+            .and_then(|b| (b.ok >> l & 1 != 0).then(|| lane_rect(&b.rects, l)));
+        if rect_area(&main_rect) == 0 && low_rect.is_none_or(|r| rect_area(&r) == 0) {
             continue;
         }
         let lane3 = |v: &[[Real; LANES]; 3]| V3::new(v[0][l], v[1][l], v[2][l]);
@@ -557,7 +637,23 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
             sigma_max: level[l],
         };
         out.rects[o] = main_rect;
-        out.radii[o] = ext.x.max(ext.y);
+        out.radii[o] = if rect_area(&main_rect) > 0 {
+            ext.x.max(ext.y)
+        } else {
+            0.0
+        };
+        if let (Some(lr), Some(b), Some((ls, lrs))) = (low_rect, low.as_ref(), out.low.as_mut()) {
+            ls[o] = Splat {
+                xy: V2::new(b.xy[0][l], b.xy[1][l]),
+                conic: lane3(&b.conic),
+                opacity: opacity[l],
+                depth: depth[l],
+                color: V3::ZERO,
+                pixels: lane_rect(&b.pixels, l),
+                sigma_max: level[l],
+            };
+            lrs[o] = lr;
+        }
     }
 }
 
@@ -675,8 +771,9 @@ mod tests {
     }
 
     /// The cheap bound contains the exact extent of every Gaussian the full projection keeps,
-    /// over random sizes, shapes, opacities, orientations and positions in and around the view
-    /// (behind the camera, grazing the near plane, far off-axis).
+    /// in the main layer and, with the bound's dilation widened for it, in coarse layers (in
+    /// main-layer pixels), over random sizes, shapes, opacities, orientations and positions in
+    /// and around the view (behind the camera, grazing the near plane, far off-axis).
     #[test]
     fn the_cheap_bound_contains_the_exact_extent() {
         let mut rng = Rng::new(7);
@@ -716,38 +813,54 @@ mod tests {
         );
         let cam = Camera::new(intr, &w2c).unwrap();
         let opts = RenderOptions::default();
+        let cfg = opts.config;
         let target = Target {
             grid: Grid::new(320, 240),
             size: (320, 240),
         };
         let mut kept = 0;
-        let p = Projector {
-            view: View::new(&g, &cam, &opts),
-            main: target,
-        };
-        for first in (0..n).step_by(LANES) {
-            let rows = Rows { first, n };
-            let ce: Centre<Portable> = centre(&p.view, &rows);
-            let sh = shape(&p.view, &rows, &ce);
-            let [bx, by] = bound(&p, &ce).map(lanes);
-            let (level, [xx, _, yy]) = (ce.level, sh.cov2d);
-            let (ex, ey) = (lanes(extent(level, xx)), lanes(extent(level, yy)));
-            let ok = Portable::bits(ce.depth_ok)
-                & Portable::bits(sh.ok)
-                & Portable::bits(Portable::splat(0.0).lt(level));
-            for l in (0..LANES.min(n - first)).filter(|l| ok >> l & 1 != 0) {
-                kept += 1;
-                let i = first + l;
-                assert!(
-                    ex[l] <= bx[l] && ey[l] <= by[l],
-                    "Gaussian {i}: bound ({}, {}) < extent ({}, {})",
-                    bx[l],
-                    by[l],
-                    ex[l],
-                    ey[l]
+        for scale in [1, 2, 4] {
+            let s = scale as Real;
+            let p = Projector {
+                view: View::new(&g, &cam, &opts),
+                bound_dilation: cfg.dilation * s * s,
+                main: target,
+                coarse: None,
+            };
+            for first in (0..n).step_by(LANES) {
+                let rows = Rows { first, n };
+                let ce: Centre<Portable> = centre(&p.view, &rows);
+                let sh = shape(&p.view, &rows, &ce);
+                let [bx, by] = bound(&p, &ce).map(lanes);
+                let (level, [xx, _, yy]) = (ce.level, sh.cov2d);
+                let d = Portable::splat(cfg.dilation);
+                let s2 = Portable::splat(s * s);
+                // The layer's extent, in main-layer pixels.
+                let var = |v: Portable| v.sub(d).div(s2).add(d);
+                let (ex, ey) = (
+                    lanes(extent(level, var(xx)).mul(Portable::splat(s))),
+                    lanes(extent(level, var(yy)).mul(Portable::splat(s))),
                 );
+                let ok = Portable::bits(ce.depth_ok)
+                    & Portable::bits(sh.ok)
+                    & Portable::bits(Portable::splat(0.0).lt(level));
+                for l in (0..LANES.min(n - first)).filter(|l| ok >> l & 1 != 0) {
+                    kept += 1;
+                    let i = first + l;
+                    assert!(
+                        ex[l] <= bx[l] && ey[l] <= by[l],
+                        "Gaussian {i} at scale {scale}: bound ({}, {}) < extent ({}, {})",
+                        bx[l],
+                        by[l],
+                        ex[l],
+                        ey[l]
+                    );
+                }
             }
         }
-        assert!(kept > n / 2, "only {kept} of {n} Gaussians projected");
+        assert!(
+            kept > 3 * n / 4,
+            "only {kept} of 3 x {n} Gaussians projected"
+        );
     }
 }

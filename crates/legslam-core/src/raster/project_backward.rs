@@ -15,6 +15,9 @@ pub(crate) struct ScreenGrads {
     pub xy: V2,
     /// With respect to the conic entries (a, b, c) as scalars.
     pub conic: V3,
+    /// With respect to the 2D covariance as a matrix (xx, xy = yx, yy), beside what `conic`
+    /// contributes (a coarser layer's share).
+    pub cov: V3,
     pub opacity: Real,
     pub color: V3,
     pub depth: Real,
@@ -27,6 +30,27 @@ pub(crate) struct BlockGrads<'a> {
     pub quat: &'a mut [Real],
     pub opacity_logit: &'a mut [Real],
     pub sh: &'a mut [Real],
+}
+
+/// d(loss)/d(2D covariance) as a 2x2 matrix, from d(loss)/d(conic entries a, b, c) (b counted
+/// once, as it enters sigma): G_cov = -Q G_Q Q with G_Q the symmetric-matrix gradient.
+#[inline]
+pub(crate) fn conic_to_cov_grad(conic: V3, g_conic: V3) -> [[Real; 2]; 2] {
+    let q2 = [[conic.x, conic.y], [conic.y, conic.z]];
+    let gq = [[g_conic.x, 0.5 * g_conic.y], [0.5 * g_conic.y, g_conic.z]];
+    let mut g_cov2 = [[0.0; 2]; 2];
+    for (a, row) in g_cov2.iter_mut().enumerate() {
+        for (b, v) in row.iter_mut().enumerate() {
+            let mut sum = 0.0;
+            for c in 0..2 {
+                for d in 0..2 {
+                    sum += q2[a][c] * gq[c][d] * q2[d][b];
+                }
+            }
+            *v = -sum;
+        }
+    }
+    g_cov2
 }
 
 /// The parameter gradients of a task's Gaussians `first..first + screen.len()` that are `on`
@@ -236,6 +260,11 @@ pub(crate) fn backward_block<L: Lanes>(
         load(s(|g| g.conic.y)),
         load(s(|g| g.conic.z)),
     ];
+    let sg_cov: [L; 3] = [
+        load(s(|g| g.cov.x)),
+        load(s(|g| g.cov.y)),
+        load(s(|g| g.cov.z)),
+    ];
     let sg_opacity: L = load(s(|g| g.opacity));
     let sg_depth: L = load(s(|g| g.depth));
 
@@ -251,7 +280,7 @@ pub(crate) fn backward_block<L: Lanes>(
     ];
 
     // Conic -> 2D covariance: G = -Q G_Q Q with G_Q the symmetric-matrix gradient (b counted
-    // once as it enters sigma).
+    // once as it enters sigma), plus the coarse layer's share, given for the covariance.
     let [a, b, cc] = sh.conic;
     let half_b = c(0.5).mul(sg_conic[1]);
     let (qg00, qg01) = (
@@ -262,9 +291,9 @@ pub(crate) fn backward_block<L: Lanes>(
         b.mul(sg_conic[0]).add(cc.mul(half_b)),
         b.mul(half_b).add(cc.mul(sg_conic[2])),
     );
-    let g00 = zero.sub(qg00.mul(a).add(qg01.mul(b)));
-    let g01 = zero.sub(qg00.mul(b).add(qg01.mul(cc)));
-    let g11 = zero.sub(qg10.mul(b).add(qg11.mul(cc)));
+    let g00 = sg_cov[0].sub(qg00.mul(a).add(qg01.mul(b)));
+    let g01 = sg_cov[1].sub(qg00.mul(b).add(qg01.mul(cc)));
+    let g11 = sg_cov[2].sub(qg10.mul(b).add(qg11.mul(cc)));
 
     // The 2D covariance J C J^T: to the camera-space covariance C, and to J, whose rows are
     // (j0x, 0, j0z) and (0, j1y, j1z).
