@@ -41,7 +41,8 @@ impl Reference {
         let t = self.t as i32;
         for i in 0..6 {
             for r in 0..p[i].len() {
-                if self.cfg.sparse && g[i][r].iter().all(|&x| x == 0.0) {
+                let sparse = self.cfg.sparse || self.cfg.sparse_features && i == 5;
+                if sparse && g[i][r].iter().all(|&x| x == 0.0) {
                     continue;
                 }
                 for j in 0..p[i][r].len() {
@@ -79,18 +80,20 @@ fn flat(rows: &Rows) -> Vec<Real> {
     rows.iter().flatten().map(|&x| x as Real).collect()
 }
 
-/// Random gradients; with `zero_rows`, about a third of the rows are exactly zero.
+/// Random gradients; with `zero_rows`, about a third of the rows are exactly zero, and the
+/// features of about a third of the others (a Gaussian on screen that reached no feature pixel).
 fn grads(rng: &mut Rng, n: usize, zero_rows: bool) -> [Rows; 6] {
     let dead: Vec<bool> = (0..n).map(|_| zero_rows && rng.next_f64() < 0.3).collect();
-    WIDTHS.map(|w| {
-        let mut g = random_rows(rng, n, w);
-        for (row, &d) in g.iter_mut().zip(&dead) {
-            if d {
+    let featureless: Vec<bool> = (0..n).map(|_| zero_rows && rng.next_f64() < 0.3).collect();
+    let mut groups = WIDTHS.map(|w| random_rows(rng, n, w));
+    for (i, g) in groups.iter_mut().enumerate() {
+        for (r, row) in g.iter_mut().enumerate() {
+            if dead[r] || i == 5 && featureless[r] {
                 row.iter_mut().for_each(|x| *x = 0.0);
             }
         }
-        g
-    })
+    }
+    groups
 }
 
 #[cfg(feature = "f64")]
@@ -100,9 +103,10 @@ const TOL: f64 = 1e-12;
 #[cfg(not(feature = "f64"))]
 const TOL: f64 = 1e-5;
 
-/// Starts from `n` rows; beyond 1024 rows the update runs as several parallel tasks.
-fn run_scenario(sparse: bool, n: usize) {
-    let mut rng = Rng::new(if sparse { 21 } else { 20 });
+/// Starts from `n` rows; beyond 1024 rows the update runs as several parallel tasks. With
+/// `sparse` or `sparse_features`, some rows' gradients (or features' alone) are zero.
+fn run_scenario(sparse: bool, sparse_features: bool, n: usize) {
+    let mut rng = Rng::new(20 + u64::from(sparse) + 2 * u64::from(sparse_features));
     let cfg = AdamConfig {
         lr: Groups {
             means: 2e-2,
@@ -118,8 +122,10 @@ fn run_scenario(sparse: bool, n: usize) {
             steps: 6,
         }),
         sparse,
+        sparse_features,
         ..AdamConfig::default()
     };
+    let zero_rows = sparse || sparse_features;
     let mut n = n;
     let mut adam = Adam::new(cfg, n, 4, 5).unwrap();
     let mut reference = Reference {
@@ -143,7 +149,7 @@ fn run_scenario(sparse: bool, n: usize) {
                 params: &mut [Rows; 6],
                 engine: &mut [Vec<Real>; 6],
                 n: usize| {
-        let g = grads(rng, n, sparse);
+        let g = grads(rng, n, zero_rows);
         let g_flat: [Vec<Real>; 6] = g.each_ref().map(flat);
         // Both sides see the same (f32-rounded) gradient.
         let g: [Rows; 6] = g.map(|rows| {
@@ -267,8 +273,8 @@ fn run_scenario(sparse: bool, n: usize) {
 
 #[test]
 fn matches_reference_through_appends_prunes_and_gathers() {
-    run_scenario(false, 50);
-    run_scenario(false, 2500);
+    run_scenario(false, false, 50);
+    run_scenario(false, false, 2500);
 }
 
 /// Dense Adam told which rows can have a gradient ignores the others' values (a reused
@@ -311,9 +317,17 @@ fn dense_listed_rows_equal_zeros_elsewhere() {
     assert_eq!(a.moments(), b.moments());
 }
 
+/// Features alone sparse: a row without a feature gradient keeps its feature and moments,
+/// while every group else (zero rows included) takes the dense update.
+#[test]
+fn sparse_features_match_reference_the_other_groups_dense() {
+    run_scenario(false, true, 50);
+    run_scenario(false, true, 2500);
+}
+
 #[test]
 fn sparse_matches_reference_and_leaves_zero_rows_alone() {
-    run_scenario(true, 50);
+    run_scenario(true, false, 50);
     let cfg = AdamConfig {
         sparse: true,
         ..AdamConfig::default()

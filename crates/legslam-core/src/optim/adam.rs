@@ -13,6 +13,9 @@ use crate::Real;
 /// Rows per parallel task: big enough to amortise scheduling, small enough to balance.
 const ROWS_PER_TASK: usize = 1024;
 
+/// The features group's place in [`Groups::into_array`].
+const FEATURES: usize = 5;
+
 /// The gradient of values that have none, a piece at a time.
 static ZEROS: [Real; 4096] = [0.0; 4096];
 
@@ -154,6 +157,11 @@ pub struct AdamConfig {
     /// "Sparse Adam": a row whose gradient is exactly zero (a Gaussian nothing saw) keeps its
     /// moments and parameters instead of coasting on its momentum.
     pub sparse: bool,
+    /// Sparse Adam for the features group alone, the others dense: a Gaussian that reached no
+    /// feature pixel keeps its feature and its moments. A feature enters no colour or depth
+    /// render, and a coarse feature layer reaches under half the map in a step (the mapper
+    /// bench's): dense updates there are memory traffic that coasts features on momentum.
+    pub sparse_features: bool,
 }
 
 impl Default for AdamConfig {
@@ -174,6 +182,7 @@ impl Default for AdamConfig {
             beta2: 0.999,
             eps: 1e-15,
             sparse: false,
+            sparse_features: false,
         }
     }
 }
@@ -345,7 +354,7 @@ impl Adam {
                 .enumerate()
                 .for_each(|(ci, (((p, m), v), g))| {
                     let first = ci * ROWS_PER_TASK;
-                    if !c.sparse {
+                    if !(c.sparse || c.sparse_features && i == FEATURES) {
                         let listed = rows.map(|rows| Listed {
                             width: w,
                             rows: rows_in(rows, first, g.len() / w),
