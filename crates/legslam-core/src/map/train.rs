@@ -76,7 +76,12 @@ impl Default for MapperConfig {
             sh_degree: 0,
             num_features: 0,
             loss: LossWeights::default(),
-            adam: AdamConfig::default(),
+            // Features sparse, the rest dense: SLAM results as good, the step 2.4 ms cheaper
+            // on the mapper bench (README, *The engine's speed*).
+            adam: AdamConfig {
+                sparse_features: true,
+                ..AdamConfig::default()
+            },
             grow: GrowConfig {
                 stride: 1,
                 ..Default::default()
@@ -611,6 +616,7 @@ crate::options!(MapperConfig, "mapper", {
     "lr_sh" => adam.lr.sh,
     "lr_features" => adam.lr.features,
     "adam_sparse" => adam.sparse,
+    "adam_sparse_features" => adam.sparse_features,
     "grow_stride" => grow.stride,
     "grow_alpha_threshold" => grow.alpha_threshold,
     "grow_depth_tolerance" => grow.depth_tolerance,
