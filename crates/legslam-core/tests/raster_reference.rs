@@ -123,6 +123,22 @@ fn renders_many_feature_channels_and_lower_degree_than_stored() {
 }
 
 #[test]
+fn bad_cut_offs_are_refused() {
+    let scene = random_scene(5, 10, 16, 16, 0, 2);
+    for bad in [1.0, -0.1, Real::NAN] {
+        let opts = RenderOptions {
+            config: RasterConfig {
+                feature_transmittance_min: bad,
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let err = render(&scene.gaussians(), &scene.camera(), &opts).unwrap_err();
+        assert!(err.contains("feature_transmittance_min"), "{err}");
+    }
+}
+
+#[test]
 fn empty_and_fully_culled_scenes_render_black() {
     let mut scene = random_scene(3, 0, 20, 10, 0, 2);
     let opts = RenderOptions::default();
@@ -150,25 +166,46 @@ fn render_is_deterministic() {
 }
 
 /// Features asked for at a coarser scale come from the same projection but match the plain
-/// reference of an image that many times smaller (intrinsics scaled about pixel centres); the
-/// other images stay the full-size reference's. (Sizes divide by the scale: otherwise the
-/// smaller image's field of view, which clamps the projection's Jacobian, is a fraction of a
-/// pixel narrower than the main one's, which the coarse layer follows.)
+/// reference of an image that many times smaller (intrinsics scaled about pixel centres), which
+/// stops a pixel at the features' own transmittance cut-off; the other images stay the
+/// full-size reference's. (Sizes divide by the scale: otherwise the smaller image's field of
+/// view, which clamps the projection's Jacobian, is a fraction of a pixel narrower than the
+/// main one's, which the coarse layer follows.)
 #[test]
 fn features_at_a_coarser_scale_match_the_smaller_images_reference() {
-    for (seed, scale) in [(21u64, 2usize), (22, 3), (23, 4)] {
+    let cut_offs = [RasterConfig::default().feature_transmittance_min, 0.05, 0.2];
+    for ((seed, scale), feature_t_min) in [(21u64, 2usize), (22, 3), (23, 4)]
+        .into_iter()
+        .zip(cut_offs)
+    {
         let scene = random_scene(seed, 300, 72, 48, 1, 6);
-        let cfg = RasterConfig::default();
+        let cfg = RasterConfig {
+            feature_transmittance_min: feature_t_min,
+            ..Default::default()
+        };
         let opts = RenderOptions {
             sh_degree: 1,
             feature_scale: scale,
+            config: cfg,
             ..Default::default()
         };
         let fast = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
         let full = reference_render(&scene, 1, &cfg);
         let mut small = scene.clone();
         small.intr = scene.intr.scaled(1.0 / scale as f64);
-        let coarse = reference_render(&small, 1, &cfg);
+        let features_cfg = RasterConfig {
+            transmittance_min: feature_t_min,
+            ..cfg
+        };
+        let coarse = reference_render(&small, 1, &features_cfg);
+        // The cut-off tells: the colour's would render other features.
+        let other = reference_render(&small, 1, &cfg);
+        if feature_t_min >= 0.01 {
+            let moved = (coarse.features.iter().zip(&other.features))
+                .filter(|(a, b)| (*a - *b).abs() > 1e-3)
+                .count();
+            assert!(moved > 0, "scale {scale}: no pixel reaches either cut-off");
+        }
         assert_eq!(
             (fast.feature_width, fast.feature_height),
             (small.intr.width, small.intr.height)

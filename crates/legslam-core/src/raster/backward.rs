@@ -144,6 +144,7 @@ pub fn backward_into(
     };
     walk_layer(opts.simd, &main, &mut scratch.main);
     if coarse {
+        let cfg = &cfg.for_features();
         let features = TileJob {
             layer: &st.coarse,
             features: g.features,

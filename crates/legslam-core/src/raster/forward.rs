@@ -192,6 +192,7 @@ pub fn render_into(
             alpha: &mut [],
             features: &mut out.features,
         };
+        let cfg = &cfg.for_features();
         composite_layer(&mut st.coarse, simd, g.features, k, images, cfg, keep);
     }
     out.width = w;
