@@ -191,11 +191,10 @@ def _map_pool_threads() -> dict:
     out = {}
     for tid in os.listdir("/proc/self/task"):
         try:
-            comm = open(f"/proc/self/task/{tid}/comm").read().strip()
-        except OSError:  # ended meanwhile
+            if open(f"/proc/self/task/{tid}/comm").read().startswith("legslam-map"):
+                out[int(tid)] = os.getpriority(os.PRIO_PROCESS, int(tid))
+        except OSError:  # the thread ended meanwhile (a dropped pool's threads exit on their own time)
             continue
-        if comm.startswith("legslam-map"):
-            out[int(tid)] = os.getpriority(os.PRIO_PROCESS, int(tid))
     return out
 
 
