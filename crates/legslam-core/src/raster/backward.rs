@@ -128,7 +128,7 @@ pub fn backward_into(
     let cfg = &opts.config;
     let coarse = !st.coarse.splats.is_empty();
 
-    // The main layer, then the features' own.
+    // The main layer, and the features' own beside it.
     let main = TileJob {
         layer: &st.main,
         features: g.features,
@@ -142,7 +142,6 @@ pub fn backward_into(
         cfg,
         kept_falloffs: opts.for_backward,
     };
-    walk_layer(opts.simd, &main, &mut scratch.main);
     if coarse {
         let cfg = &cfg.for_features();
         let features = TileJob {
@@ -158,7 +157,13 @@ pub fn backward_into(
             cfg,
             kept_falloffs: opts.for_backward,
         };
-        walk_layer(opts.simd, &features, &mut scratch.coarse);
+        // Side by side, as the forward pass composites them.
+        rayon::join(
+            || walk_layer(opts.simd, &main, &mut scratch.main),
+            || walk_layer(opts.simd, &features, &mut scratch.coarse),
+        );
+    } else {
+        walk_layer(opts.simd, &main, &mut scratch.main);
     }
     let scale = opts.feature_scale as Real;
     let strides = [SLOTS + main.k, SLOTS + k];

@@ -176,24 +176,36 @@ pub fn render_into(
         (w, h)
     };
     outputs(&mut out.features, k > 0, fw * fh * k);
+    // The features go to the main layer's images, or to their own layer's.
+    let (main_features, coarse_features) = if coarse {
+        (&mut [][..], &mut out.features[..])
+    } else {
+        (&mut out.features[..], &mut [][..])
+    };
     let images = Images {
         color: &mut out.color,
         depth: &mut out.depth,
         alpha: &mut out.alpha,
-        features: if coarse { &mut [] } else { &mut out.features },
+        features: main_features,
     };
     let keep = opts.for_backward;
     let cfg = &opts.config;
-    composite_layer(&mut st.main, simd, g.features, main_k, images, cfg, keep);
+    let main = || composite_layer(&mut st.main, simd, g.features, main_k, images, cfg, keep);
     if coarse {
         let images = Images {
             color: &mut [],
             depth: &mut [],
             alpha: &mut [],
-            features: &mut out.features,
+            features: coarse_features,
         };
         let cfg = &cfg.for_features();
-        composite_layer(&mut st.coarse, simd, g.features, k, images, cfg, keep);
+        // Side by side: either layer alone has too few rows of tiles to keep both threads
+        // busy to its end (the features' 160x120 has eight).
+        rayon::join(main, || {
+            composite_layer(&mut st.coarse, simd, g.features, k, images, cfg, keep)
+        });
+    } else {
+        main();
     }
     out.width = w;
     out.height = h;
