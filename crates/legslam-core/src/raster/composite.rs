@@ -331,9 +331,9 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             let done = L::load(&acc.done[lp..]);
             let c = g.cover::<L>(s, &cols, done.le(zero), cfg);
             if let Some(kept) = falloffs.as_mut() {
-                let at = kept.len();
-                kept.resize(at + LANES, 0.0);
-                L::select(c.ok, c.falloff, zero).store(&mut kept[at..]);
+                let mut group = [0.0; LANES];
+                L::select(c.ok, c.falloff, zero).store(&mut group);
+                kept.extend_from_slice(&group);
             }
             let live = c.ok;
             if L::bits(live) == 0 {
