@@ -14,8 +14,9 @@
 //! path where the CPU has a vector one: the fast path alone, e.g. for `perf record -D` past the
 //! setup),
 //! LEGSLAM_BENCH_SPARSE_ADAM (set: the mapper option `adam_sparse`; SLAM's default, and the
-//! bench's, is dense Adam but for the features), LEGSLAM_BENCH_DENSE_FEATURES (set: the features
-//! dense too, `adam_sparse_features` false), LEGSLAM_BENCH_FEATURE_OFFSET (the mapper option
+//! bench's, is dense Adam but for the features and SH), LEGSLAM_BENCH_DENSE_FEATURES (set: the
+//! features dense too, `adam_sparse_features` false), LEGSLAM_BENCH_DENSE_SH (set: the SH dense
+//! too, `adam_sparse_sh` false), LEGSLAM_BENCH_FEATURE_OFFSET (the mapper option
 //! `feature_level_offset`, default 1: features at 160x120, as SLAM trains a 640-wide input).
 
 #[path = "common/mod.rs"]
@@ -108,6 +109,7 @@ fn main() {
     config.grow.stride = 2;
     config.adam.sparse = std::env::var("LEGSLAM_BENCH_SPARSE_ADAM").is_ok();
     config.adam.sparse_features = std::env::var("LEGSLAM_BENCH_DENSE_FEATURES").is_err();
+    config.adam.sparse_sh = std::env::var("LEGSLAM_BENCH_DENSE_SH").is_err();
     let grow = |config: MapperConfig| {
         let mut mapper = Mapper::new(config).unwrap();
         let intr = Intrinsics::from_array([F, F, 320.0, 240.0], W, H);

@@ -67,10 +67,12 @@ fn mapper_options_by_name_reach_their_fields_and_keep_their_kinds() {
     c.set("window", Value::Int(4)).unwrap();
     c.set("lr_sh", Value::Real(0.01)).unwrap();
     c.set("adam_sparse", Value::Bool(true)).unwrap();
-    assert!(c.adam.sparse_features, "SLAM's default");
+    assert!(c.adam.sparse_features && c.adam.sparse_sh, "SLAM's default");
     c.set("adam_sparse_features", Value::Bool(false)).unwrap();
+    c.set("adam_sparse_sh", Value::Bool(false)).unwrap();
     assert_eq!(c.window, 4);
     assert!((c.adam.lr.sh - 0.01).abs() < 1e-9 && c.adam.sparse && !c.adam.sparse_features);
+    assert!(!c.adam.sparse_sh);
     let entries = c.entries();
     assert!(entries.contains(&("window", Value::Int(4))));
     assert!(entries.contains(&("adam_sparse", Value::Bool(true))));

@@ -41,7 +41,9 @@ impl Reference {
         let t = self.t as i32;
         for i in 0..6 {
             for r in 0..p[i].len() {
-                let sparse = self.cfg.sparse || self.cfg.sparse_features && i == 5;
+                let sparse = self.cfg.sparse
+                    || self.cfg.sparse_features && i == 5
+                    || self.cfg.sparse_sh && i == 4;
                 if sparse && g[i][r].iter().all(|&x| x == 0.0) {
                     continue;
                 }
@@ -80,15 +82,17 @@ fn flat(rows: &Rows) -> Vec<Real> {
     rows.iter().flatten().map(|&x| x as Real).collect()
 }
 
-/// Random gradients; with `zero_rows`, about a third of the rows are exactly zero, and the
-/// features of about a third of the others (a Gaussian on screen that reached no feature pixel).
+/// Random gradients; with `zero_rows`, about a third of the rows are exactly zero, the
+/// features of about a third of the others (a Gaussian on screen that reached no feature pixel)
+/// and the SH of about a third (one hidden behind others in the colour layer).
 fn grads(rng: &mut Rng, n: usize, zero_rows: bool) -> [Rows; 6] {
     let dead: Vec<bool> = (0..n).map(|_| zero_rows && rng.next_f64() < 0.3).collect();
     let featureless: Vec<bool> = (0..n).map(|_| zero_rows && rng.next_f64() < 0.3).collect();
+    let colourless: Vec<bool> = (0..n).map(|_| zero_rows && rng.next_f64() < 0.3).collect();
     let mut groups = WIDTHS.map(|w| random_rows(rng, n, w));
     for (i, g) in groups.iter_mut().enumerate() {
         for (r, row) in g.iter_mut().enumerate() {
-            if dead[r] || i == 5 && featureless[r] {
+            if dead[r] || i == 5 && featureless[r] || i == 4 && colourless[r] {
                 row.iter_mut().for_each(|x| *x = 0.0);
             }
         }
@@ -104,9 +108,12 @@ const TOL: f64 = 1e-12;
 const TOL: f64 = 1e-5;
 
 /// Starts from `n` rows; beyond 1024 rows the update runs as several parallel tasks. With
-/// `sparse` or `sparse_features`, some rows' gradients (or features' alone) are zero.
-fn run_scenario(sparse: bool, sparse_features: bool, n: usize) {
-    let mut rng = Rng::new(20 + u64::from(sparse) + 2 * u64::from(sparse_features));
+/// `sparse`, `sparse_features` or `sparse_sh`, some rows' gradients (or features' or SH's alone)
+/// are zero.
+fn run_scenario(sparse: bool, sparse_features: bool, sparse_sh: bool, n: usize) {
+    let mut rng = Rng::new(
+        20 + u64::from(sparse) + 2 * u64::from(sparse_features) + 4 * u64::from(sparse_sh),
+    );
     let cfg = AdamConfig {
         lr: Groups {
             means: 2e-2,
@@ -123,9 +130,10 @@ fn run_scenario(sparse: bool, sparse_features: bool, n: usize) {
         }),
         sparse,
         sparse_features,
+        sparse_sh,
         ..AdamConfig::default()
     };
-    let zero_rows = sparse || sparse_features;
+    let zero_rows = sparse || sparse_features || sparse_sh;
     let mut n = n;
     let mut adam = Adam::new(cfg, n, 4, 5).unwrap();
     let mut reference = Reference {
@@ -273,8 +281,8 @@ fn run_scenario(sparse: bool, sparse_features: bool, n: usize) {
 
 #[test]
 fn matches_reference_through_appends_prunes_and_gathers() {
-    run_scenario(false, false, 50);
-    run_scenario(false, false, 2500);
+    run_scenario(false, false, false, 50);
+    run_scenario(false, false, false, 2500);
 }
 
 /// Dense Adam told which rows can have a gradient ignores the others' values (a reused
@@ -321,13 +329,21 @@ fn dense_listed_rows_equal_zeros_elsewhere() {
 /// while every group else (zero rows included) takes the dense update.
 #[test]
 fn sparse_features_match_reference_the_other_groups_dense() {
-    run_scenario(false, true, 50);
-    run_scenario(false, true, 2500);
+    run_scenario(false, true, false, 50);
+    run_scenario(false, true, false, 2500);
+}
+
+/// SH and features sparse (SLAM's default), the geometry dense: a row without a colour or
+/// feature gradient keeps those values and moments while its geometry takes the dense update.
+#[test]
+fn sparse_sh_and_features_match_reference_the_geometry_dense() {
+    run_scenario(false, true, true, 50);
+    run_scenario(false, true, true, 2500);
 }
 
 #[test]
 fn sparse_matches_reference_and_leaves_zero_rows_alone() {
-    run_scenario(true, false, 50);
+    run_scenario(true, false, false, 50);
     let cfg = AdamConfig {
         sparse: true,
         ..AdamConfig::default()

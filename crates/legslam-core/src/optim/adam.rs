@@ -13,7 +13,8 @@ use crate::Real;
 /// Rows per parallel task: big enough to amortise scheduling, small enough to balance.
 const ROWS_PER_TASK: usize = 1024;
 
-/// The features group's place in [`Groups::into_array`].
+/// The SH and features groups' places in [`Groups::into_array`].
+const SH: usize = 4;
 const FEATURES: usize = 5;
 
 /// The gradient of values that have none, a piece at a time.
@@ -162,6 +163,10 @@ pub struct AdamConfig {
     /// render, and a coarse feature layer reaches under half the map in a step (the mapper
     /// bench's): dense updates there are memory traffic that coasts features on momentum.
     pub sparse_features: bool,
+    /// Sparse Adam for the colour (SH) group too: a Gaussian that made no pixel's colour keeps
+    /// its SH coefficients and moments. With SH degree 3 they are 48 of a row's 59 dense values,
+    /// and the Gaussians off screen, or hidden, make a third of the map or more.
+    pub sparse_sh: bool,
 }
 
 impl Default for AdamConfig {
@@ -183,6 +188,7 @@ impl Default for AdamConfig {
             eps: 1e-15,
             sparse: false,
             sparse_features: false,
+            sparse_sh: false,
         }
     }
 }
@@ -354,7 +360,9 @@ impl Adam {
                 .enumerate()
                 .for_each(|(ci, (((p, m), v), g))| {
                     let first = ci * ROWS_PER_TASK;
-                    if !(c.sparse || c.sparse_features && i == FEATURES) {
+                    let sparse =
+                        c.sparse || c.sparse_features && i == FEATURES || c.sparse_sh && i == SH;
+                    if !sparse {
                         let listed = rows.map(|rows| Listed {
                             width: w,
                             rows: rows_in(rows, first, g.len() / w),
