@@ -77,7 +77,7 @@ impl Default for MapperConfig {
             num_features: 0,
             loss: LossWeights::default(),
             // Features and colour sparse, the geometry dense: SLAM results as good, the step
-            // 2.4 and 1.6 ms cheaper on the mapper bench (README, *The engine's speed*).
+            // 2.4 and 2 ms cheaper on the mapper bench (README, *The engine's speed*).
             adam: AdamConfig {
                 sparse_features: true,
                 sparse_sh: true,

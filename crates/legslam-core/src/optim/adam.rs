@@ -165,7 +165,7 @@ pub struct AdamConfig {
     pub sparse_features: bool,
     /// Sparse Adam for the colour (SH) group too: a Gaussian that made no pixel's colour keeps
     /// its SH coefficients and moments. With SH degree 3 they are 48 of a row's 59 dense values,
-    /// and the Gaussians off screen, or hidden, make a third of the map or more.
+    /// and a view leaves much of a map off screen or hidden.
     pub sparse_sh: bool,
 }
 
