@@ -13,10 +13,6 @@ use crate::Real;
 /// Rows per parallel task: big enough to amortise scheduling, small enough to balance.
 const ROWS_PER_TASK: usize = 1024;
 
-/// The SH and features groups' places in [`Groups::into_array`].
-const SH: usize = 4;
-const FEATURES: usize = 5;
-
 /// The gradient of values that have none, a piece at a time.
 static ZEROS: [Real; 4096] = [0.0; 4096];
 
@@ -194,6 +190,15 @@ impl Default for AdamConfig {
 }
 
 impl AdamConfig {
+    /// Which groups take the sparse step (`sparse`, or their own option).
+    pub(crate) fn sparse_groups(&self) -> Groups<bool> {
+        Groups {
+            sh: self.sparse || self.sparse_sh,
+            features: self.sparse || self.sparse_features,
+            ..Groups::splat(self.sparse)
+        }
+    }
+
     pub fn validate(&self) -> Result<(), String> {
         for (name, lr) in NAMES.iter().zip(self.lr.into_array()) {
             if !(lr.is_finite() && lr >= 0.0) {
@@ -334,6 +339,7 @@ impl Adam {
             ));
         }
         let lrs = self.learning_rates().into_array();
+        let sparse_groups = self.config.sparse_groups().into_array();
         self.steps += 1;
         let c = self.config;
         let t = self.steps as f64;
@@ -341,7 +347,7 @@ impl Adam {
         let bias2_sqrt = (1.0 - f64::from(c.beta2).powf(t)).sqrt();
         let avx2 = crate::raster::avx2_available();
         for (i, (p, g)) in params.into_iter().zip(grads).enumerate() {
-            let w = self.widths[i];
+            let (w, sparse) = (self.widths[i], sparse_groups[i]);
             if w == 0 {
                 continue;
             }
@@ -360,8 +366,6 @@ impl Adam {
                 .enumerate()
                 .for_each(|(ci, (((p, m), v), g))| {
                     let first = ci * ROWS_PER_TASK;
-                    let sparse =
-                        c.sparse || c.sparse_features && i == FEATURES || c.sparse_sh && i == SH;
                     if !sparse {
                         let listed = rows.map(|rows| Listed {
                             width: w,
