@@ -17,7 +17,9 @@
 //! bench's, is dense Adam but for the features and SH), LEGSLAM_BENCH_DENSE_FEATURES (set: the
 //! features dense too, `adam_sparse_features` false), LEGSLAM_BENCH_DENSE_SH (set: the SH dense
 //! too, `adam_sparse_sh` false), LEGSLAM_BENCH_FEATURE_OFFSET (the mapper option
-//! `feature_level_offset`, default 1: features at 160x120, as SLAM trains a 640-wide input).
+//! `feature_level_offset`, default 1: features at 160x120, as SLAM trains a 640-wide input),
+//! LEGSLAM_BENCH_UNORDERED (1 adds a map grown without the mapper option `spatial_order`, on
+//! the CPU's best path).
 
 #[path = "common/mod.rs"]
 mod common;
@@ -150,7 +152,13 @@ fn main() {
         let mut pruned = config.clone();
         pruned.prune.min_contribution = 1.6;
         mappers.push(grow(pruned));
-        variants.push(("pruned", 1, Simd::Auto));
+        variants.push(("pruned", mappers.len() - 1, Simd::Auto));
+    }
+    if env("LEGSLAM_BENCH_UNORDERED", 0) != 0 {
+        let mut unordered = config.clone();
+        unordered.spatial_order = false;
+        mappers.push(grow(unordered));
+        variants.push(("unordered", mappers.len() - 1, Simd::Auto));
     }
     let mut phases = vec![[(); 6].map(|_| Vec::new()); variants.len()];
     pool.install(|| {

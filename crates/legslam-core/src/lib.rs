@@ -17,6 +17,7 @@ pub mod optim;
 pub mod options;
 pub mod raster;
 pub mod rng;
+mod rows;
 pub mod track;
 
 /// The engine's scalar type: `f32` in every build users run, `f64` under the `f64` feature so

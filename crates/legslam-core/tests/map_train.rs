@@ -2,6 +2,7 @@
 //! pruning keep the optimiser's rows in step with the map's.
 
 use legslam_core::camera::{Intrinsics, Pose};
+use legslam_core::map::order::spatial_order;
 use legslam_core::map::{GaussianMap, Mapper, MapperConfig};
 use legslam_core::optim::Groups;
 use legslam_core::Real;
@@ -73,6 +74,9 @@ fn mapper_options_by_name_reach_their_fields_and_keep_their_kinds() {
     assert_eq!(c.window, 4);
     assert!((c.adam.lr.sh - 0.01).abs() < 1e-9 && c.adam.sparse && !c.adam.sparse_features);
     assert!(!c.adam.sparse_sh);
+    assert!(c.spatial_order, "on by default");
+    c.set("spatial_order", Value::Bool(false)).unwrap();
+    assert!(!c.spatial_order);
     let entries = c.entries();
     assert!(entries.contains(&("window", Value::Int(4))));
     assert!(entries.contains(&("adam_sparse", Value::Bool(true))));
@@ -438,4 +442,83 @@ fn learning_rate_scales_by_group_scale_each_groups_step_alone() {
     };
     let err = m.set_lr_scales(bad).unwrap_err();
     assert!(err.contains("sh"), "{err}");
+}
+
+/// Every Gaussian's parameters as one row of bits, the rows sorted: the map as a set.
+fn rows_as_set(m: &GaussianMap) -> Vec<Vec<u64>> {
+    let groups: [(&[Real], usize); 6] = [
+        (&m.means, 3),
+        (&m.log_scales, 3),
+        (&m.quats, 4),
+        (&m.opacity_logits, 1),
+        (&m.sh, m.sh_coeffs * 3),
+        (&m.features, m.num_features),
+    ];
+    let mut rows: Vec<Vec<u64>> = (0..m.len())
+        .map(|i| {
+            groups
+                .iter()
+                .flat_map(|(v, w)| v[i * w..(i + 1) * w].iter().map(|x| x.to_bits().into()))
+                .chain([u64::from(m.origin[i]), u64::from(m.has_feature[i])])
+                .collect()
+        })
+        .collect();
+    rows.sort_unstable();
+    rows
+}
+
+/// A refinement with `spatial_order` leaves the map it would have left without, its rows in
+/// spatial order, each with its own optimiser moments (the steps after it move every Gaussian
+/// as they move it in the order it was made).
+#[test]
+fn spatial_order_permutes_rows_with_their_moments() {
+    let run = |spatial_order: bool, iterations: usize| {
+        let mut cfg = MapperConfig {
+            finest_level: 0,
+            grow_level: 0,
+            spatial_order,
+            ..Default::default()
+        };
+        cfg.densify.interval = 10;
+        cfg.densify.grad_threshold = 1e-9; // clones and splits
+        cfg.prune.min_opacity = 0.79; // and pruned rows (they start at 0.8)
+        let mut m = Mapper::new(cfg).unwrap();
+        // Two views side by side, so that the rows come in two runs.
+        let (rgb, depth, k) = wall(48, 32);
+        let mut beside = Pose::identity();
+        beside[(0, 3)] = 1.5;
+        m.add_keyframe(rgb.clone(), depth.clone(), k, Pose::identity())
+            .unwrap();
+        m.add_keyframe(rgb, depth, k, beside).unwrap();
+        let r = m.train(iterations).unwrap();
+        (m, r)
+    };
+    // Refined once, after the 10th iteration; then 5 more steps (the next refinement would
+    // draw split samples in row order, so that the maps part ways there).
+    for iterations in [10, 15] {
+        let (a, ra) = run(true, iterations);
+        let (b, rb) = run(false, iterations);
+        assert!(ra.cloned + ra.split > 0 && ra.pruned > 0, "{ra:?}");
+        assert_eq!(
+            (ra.cloned, ra.split, ra.pruned),
+            (rb.cloned, rb.split, rb.pruned)
+        );
+        let (sa, sb) = (rows_as_set(&a.map), rows_as_set(&b.map));
+        let differ = sa.iter().zip(&sb).filter(|(x, y)| x != y).count();
+        assert!(
+            sa.len() == sb.len() && differ == 0,
+            "after {iterations}: {} against {} rows, {differ} differ",
+            sa.len(),
+            sb.len()
+        );
+        assert_ne!(a.map.means, b.map.means, "the same order");
+        if iterations == 10 {
+            let all = vec![true; a.map.len()];
+            let order = spatial_order(&a.map.means, &all);
+            assert!(
+                order.iter().enumerate().all(|(i, &r)| i == r),
+                "not in order"
+            );
+        }
+    }
 }

@@ -7,6 +7,7 @@ pub mod exposure;
 pub mod features;
 pub mod grow;
 pub mod keyframe;
+pub mod order;
 pub mod pose;
 pub mod prune;
 pub mod store;

@@ -3,6 +3,7 @@
 
 use crate::optim::Groups;
 use crate::raster::Gaussians;
+use crate::rows::{gather_rows, retain_rows};
 use crate::Real;
 
 /// N Gaussians, row i of every array belonging to Gaussian i.
@@ -119,6 +120,18 @@ impl GaussianMap {
         retain_rows(&mut self.has_feature, 1, keep);
     }
 
+    /// Replaces the rows by rows `order[0], order[1], ...` (as [`crate::optim::Adam::gather`];
+    /// every index must be a row).
+    pub fn gather(&mut self, order: &[usize]) {
+        let widest = (self.sh_coeffs * 3).max(self.num_features).max(4);
+        let mut spare = Vec::with_capacity(order.len() * widest);
+        for (v, w) in self.groups_mut() {
+            gather_rows(v, w, order, &mut spare);
+        }
+        gather_rows(&mut self.origin, 1, order, &mut Vec::new());
+        gather_rows(&mut self.has_feature, 1, order, &mut Vec::new());
+    }
+
     /// Appends copies of the rows `rows` (for clone and split densification).
     pub fn duplicate(&mut self, rows: &[usize]) {
         for (v, w) in self.groups_mut() {
@@ -127,20 +140,6 @@ impl GaussianMap {
         duplicate_rows(&mut self.origin, 1, rows);
         duplicate_rows(&mut self.has_feature, 1, rows);
     }
-}
-
-fn retain_rows<T: Copy>(v: &mut Vec<T>, width: usize, keep: &[bool]) {
-    if width == 0 {
-        return;
-    }
-    let mut w = 0;
-    for (i, &k) in keep.iter().enumerate() {
-        if k {
-            v.copy_within(i * width..(i + 1) * width, w * width);
-            w += 1;
-        }
-    }
-    v.truncate(w * width);
 }
 
 fn duplicate_rows<T: Copy>(v: &mut Vec<T>, width: usize, rows: &[usize]) {

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use super::densify::{add_screen_grads, densify, DensifyConfig};
 use super::grow::{assign_features, grow, GrowConfig, RenderedView};
+use super::order::spatial_order;
 use super::pose::step_pose;
 use super::prune::{add_contributions, keep_mask, PruneConfig};
 use super::tally::Tally;
@@ -48,6 +49,9 @@ pub struct MapperConfig {
     pub grow: GrowConfig,
     pub prune: PruneConfig,
     pub densify: DensifyConfig,
+    /// At every refinement, put the rows in spatial order ([`super::order`]) as pruning
+    /// compacts them: the same map, walked with fewer cache misses.
+    pub spatial_order: bool,
     /// Learning rates of keyframe poses (metres and radians per step; 0 keeps poses fixed).
     /// The first keyframe never moves: it anchors the map.
     pub pose_lr_translation: Real,
@@ -89,6 +93,7 @@ impl Default for MapperConfig {
             },
             prune: PruneConfig::default(),
             densify: DensifyConfig::default(),
+            spatial_order: true,
             pose_lr_translation: 0.0,
             pose_lr_rotation: 0.0,
             exposure_lr: 0.0,
@@ -583,8 +588,14 @@ impl Mapper {
         );
         let keep: Vec<bool> = d.keep.iter().zip(&prune).map(|(a, b)| *a && *b).collect();
         let before = self.map.len();
-        self.map.retain(&keep);
-        self.adam.retain(&keep)?;
+        if self.config.spatial_order {
+            let order = spatial_order(&self.map.means, &keep);
+            self.map.gather(&order);
+            self.adam.gather(&order)?;
+        } else {
+            self.map.retain(&keep);
+            self.adam.retain(&keep)?;
+        }
         report.cloned += d.cloned;
         report.split += d.split;
         report.pruned += before - self.map.len() - d.split;
@@ -619,6 +630,7 @@ crate::options!(MapperConfig, "mapper", {
     "adam_sparse" => adam.sparse,
     "adam_sparse_features" => adam.sparse_features,
     "adam_sparse_sh" => adam.sparse_sh,
+    "spatial_order" => spatial_order,
     "grow_stride" => grow.stride,
     "grow_alpha_threshold" => grow.alpha_threshold,
     "grow_depth_tolerance" => grow.depth_tolerance,

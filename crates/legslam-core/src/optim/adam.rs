@@ -8,6 +8,7 @@
 use rayon::prelude::*;
 
 use super::groups::{Groups, NAMES};
+use crate::rows::{gather_rows, retain_rows};
 use crate::Real;
 
 /// Rows per parallel task: big enough to amortise scheduling, small enough to balance.
@@ -413,14 +414,8 @@ impl Adam {
             ));
         }
         for i in 0..6 {
-            let w = self.widths[i];
             for a in [&mut self.m[i], &mut self.v[i]] {
-                let mut out = 0;
-                for (row, _) in keep.iter().enumerate().filter(|(_, &k)| k) {
-                    a.copy_within(row * w..(row + 1) * w, out * w);
-                    out += 1;
-                }
-                a.truncate(out * w);
+                retain_rows(a, self.widths[i], keep);
             }
         }
         self.len = keep.iter().filter(|&&k| k).count();
@@ -436,13 +431,11 @@ impl Adam {
                 self.len
             ));
         }
+        let widest = self.widths.iter().max().copied().unwrap_or(0);
+        let mut spare = Vec::with_capacity(indices.len() * widest);
         for i in 0..6 {
-            let w = self.widths[i];
             for a in [&mut self.m[i], &mut self.v[i]] {
-                *a = indices
-                    .iter()
-                    .flat_map(|&r| a[r * w..(r + 1) * w].iter().copied())
-                    .collect();
+                gather_rows(a, self.widths[i], indices, &mut spare);
             }
         }
         self.len = indices.len();
