@@ -28,8 +28,8 @@ pub fn spatial_order(means: &[Real], keep: &[bool]) -> Vec<usize> {
     let cell = |v: Real, a: usize| -> u64 {
         let span = f64::from(hi[a]) - f64::from(lo[a]);
         let t = (f64::from(v) - f64::from(lo[a])) / span * cells;
-        // NaN (a non-finite coordinate, or a box of zero span) is cell 0.
-        if t.is_nan() {
+        // NaN (a box of zero span) is cell 0, as a coordinate that is not finite.
+        if !v.is_finite() || t.is_nan() {
             0
         } else {
             t.clamp(0.0, cells) as u64
@@ -100,7 +100,7 @@ mod tests {
         octant.extend([0, 7]);
         let keep: Vec<bool> = (0..octant.len()).map(|i| i % 7 != 3).collect();
         let order = spatial_order(&means, &keep);
-        let mut kept: Vec<usize> = (0..keep.len()).filter(|&i| keep[i]).collect();
+        let kept: Vec<usize> = (0..keep.len()).filter(|&i| keep[i]).collect();
         let mut sorted = order.clone();
         sorted.sort_unstable();
         assert_eq!(sorted, kept, "a permutation of the kept rows");
@@ -109,13 +109,20 @@ mod tests {
             octants.windows(2).all(|w| w[0] <= w[1]),
             "octants in Morton order: {octants:?}"
         );
-        // Non-finite means neither panic nor drop rows.
+        // A coordinate that is not finite neither panics nor drops its row, and counts as the
+        // box's low side: row 1, high in x and z, infinite in y, sorts with the octant high
+        // in x and z alone (5), before every row of octant 6 (high in y and z).
         means[0] = Real::NAN;
-        means[4] = Real::INFINITY;
-        kept.sort_unstable();
-        let mut again = spatial_order(&means, &keep);
-        again.sort_unstable();
-        assert_eq!(again, kept);
+        means[3..6].copy_from_slice(&[1.5, Real::INFINITY, 1.5]);
+        let again = spatial_order(&means, &keep);
+        let mut sorted = again.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, kept);
+        let at = |row: usize| again.iter().position(|&r| r == row).unwrap();
+        assert!(
+            (0..octant.len()).all(|r| octant[r] != 6 || !keep[r] || at(1) < at(r)),
+            "row 1 sorted as if its y were high"
+        );
     }
 
     /// On points scattered through a room, consecutive rows end up far closer in space than in
