@@ -123,9 +123,10 @@ impl GaussianMap {
     /// Replaces the rows by rows `order[0], order[1], ...` (as [`crate::optim::Adam::gather`];
     /// every index must be a row).
     pub fn gather(&mut self, order: &[usize]) {
-        let widest = (self.sh_coeffs * 3).max(self.num_features).max(4);
+        let groups = self.groups_mut();
+        let widest = groups.iter().map(|(_, w)| *w).max().unwrap_or(0);
         let mut spare = Vec::with_capacity(order.len() * widest);
-        for (v, w) in self.groups_mut() {
+        for (v, w) in groups {
             gather_rows(v, w, order, &mut spare);
         }
         gather_rows(&mut self.origin, 1, order, &mut Vec::new());
