@@ -4,7 +4,9 @@
 //!
 //! cargo bench -p legslam-core --bench loss
 
-use legslam_core::loss::{DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, Ssim};
+use legslam_core::loss::{
+    DepthInputs, FeatureInputs, FeatureTarget, Loss, LossGrads, LossInputs, Ssim,
+};
 use legslam_core::Real;
 
 /// Deterministic pseudo-random values in [0, 1).
@@ -81,7 +83,7 @@ fn full_loss_320x240_k64(bencher: divan::Bencher, threads: usize) {
             }),
             features: Some(FeatureInputs {
                 rendered: &feat,
-                target: &target_feat,
+                target: FeatureTarget::Pixels(&target_feat),
                 channels: k,
                 mask: None,
             }),

@@ -5,8 +5,8 @@ mod common;
 
 use common::Rng;
 use legslam_core::loss::{
-    cosine, depth_l1, l1, DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossWeights,
-    Ssim, COS_EPS,
+    cosine, depth_l1, l1, Blend, DepthInputs, FeatureInputs, FeatureTarget, Loss, LossGrads,
+    LossInputs, LossWeights, Ssim, COS_EPS,
 };
 use legslam_core::Real;
 
@@ -191,7 +191,7 @@ impl Case {
             }),
             features: Some(FeatureInputs {
                 rendered: &self.feat,
-                target: &self.target_feat,
+                target: FeatureTarget::Pixels(&self.target_feat),
                 channels: self.k,
                 mask: None,
             }),
@@ -250,6 +250,94 @@ fn combined_loss_is_the_weighted_sum_of_its_terms() {
     for (a, b) in gf.iter().zip(&gf2) {
         assert!((a - 0.2 * b).abs() < 1e-6);
     }
+}
+
+/// A blended target is read as the per-pixel target it expands to: the same loss, and the
+/// same gradients bit for bit (with a mask, and with rows blended in either order).
+#[test]
+fn blended_feature_target_is_its_expansion() {
+    let mut rng = Rng::new(15);
+    let (w, h, k, rows_n) = (7, 5, 6, 3);
+    let rows = random(&mut rng, rows_n * w * k, -1.0, 1.0);
+    let blends: Vec<Blend> = (0..h)
+        .map(|y| Blend {
+            lower: y % rows_n,
+            upper: (y * 2 + 1) % rows_n,
+            weight: [0.0, 0.3, 1.0, 0.75, 0.5][y],
+        })
+        .collect();
+    let expanded: Vec<Real> = (0..h)
+        .flat_map(|y| {
+            let b = blends[y];
+            let (lo, hi) = (
+                &rows[b.lower * w * k..][..w * k],
+                &rows[b.upper * w * k..][..w * k],
+            );
+            let v: Vec<Real> = lo
+                .iter()
+                .zip(hi)
+                .map(|(l, h)| l + b.weight * (h - l))
+                .collect();
+            v
+        })
+        .collect();
+    let rendered = random(&mut rng, w * h * k, -1.0, 1.0);
+    let mask: Vec<bool> = (0..w * h).map(|p| p % 4 != 1).collect();
+    let mut loss = Loss::default();
+    let mut eval = |target: FeatureTarget| {
+        let (mut gc, mut gf) = (vec![0.0; w * h * 3], vec![7.0; w * h * k]);
+        let color = vec![0.5; w * h * 3];
+        let inputs = LossInputs {
+            width: w,
+            height: h,
+            color: &color,
+            target_color: &color,
+            color_mask: None,
+            depth: None,
+            features: Some(FeatureInputs {
+                rendered: &rendered,
+                target,
+                channels: k,
+                mask: Some(&mask),
+            }),
+        };
+        let grads = LossGrads {
+            color: &mut gc,
+            depth: None,
+            features: Some(&mut gf),
+        };
+        let t = loss.evaluate(&inputs, grads).map(|t| t.feature);
+        (t, gf)
+    };
+    let (want, want_g) = eval(FeatureTarget::Pixels(&expanded));
+    let blended = FeatureTarget::Blended {
+        rows: &rows,
+        blends: &blends,
+    };
+    let (got, got_g) = eval(blended);
+    let (got, want) = (got.unwrap(), want.unwrap());
+    // The pixels' terms are the same; a per-pixel target is summed in other runs of pixels.
+    assert!(want > 0.1 && (got - want).abs() < 1e-12, "{got} vs {want}");
+    let bits = |v: &[Real]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&got_g), bits(&want_g));
+    // Rows that do not fit, blends that reach past the rows or weigh outside [0, 1].
+    let mut bad = |rows: &[Real], blends: &[Blend]| eval(FeatureTarget::Blended { rows, blends }).0;
+    assert!(bad(&rows[1..], &blends).unwrap_err().contains("rows"));
+    assert!(bad(&rows, &blends[1..])
+        .unwrap_err()
+        .contains("cannot cover"));
+    let mut out_of_range = blends.clone();
+    out_of_range[2].upper = rows_n;
+    assert!(bad(&rows, &out_of_range)
+        .unwrap_err()
+        .contains("out of range"));
+    out_of_range[2] = Blend {
+        weight: 1.5,
+        ..blends[2]
+    };
+    assert!(bad(&rows, &out_of_range)
+        .unwrap_err()
+        .contains("out of range"));
 }
 
 #[cfg(feature = "f64")]

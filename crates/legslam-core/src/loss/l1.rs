@@ -37,7 +37,7 @@ pub(crate) fn l1_into(
     grad: &mut [Real],
     emit: Emit,
 ) -> Result<f64, String> {
-    let counted = pixel_counts("L1", rendered, target, grad, mask, channels)?;
+    let counted = pixel_counts("L1", rendered, Some(target.len()), grad, mask, channels)?;
     let counted = counted * channels;
     let inv = if counted == 0 {
         0.0

@@ -56,10 +56,35 @@ pub struct DepthInputs<'a> {
 #[derive(Clone, Copy, Debug)]
 pub struct FeatureInputs<'a> {
     pub rendered: &'a [Real],
-    pub target: &'a [Real],
+    pub target: FeatureTarget<'a>,
     pub channels: usize,
     /// Pixels with a valid target; `None` uses every pixel.
     pub mask: Option<&'a [bool]>,
+}
+
+/// The target of the feature loss.
+#[derive(Clone, Copy, Debug)]
+pub enum FeatureTarget<'a> {
+    /// One vector per pixel, like the rendered map.
+    Pixels(&'a [Real]),
+    /// Rows of vectors as wide as the image, of which every pixel row blends two: row y's
+    /// targets are `rows[b.lower] + b.weight (rows[b.upper] - rows[b.lower])` for
+    /// `b = blends[y]`. A target upsampled bilinearly from a coarse grid is this once the
+    /// grid's rows are upsampled along x; the loss then reads a few rows instead of an image
+    /// of targets (64 channels at 160x120 are 4.9 MB to write and read back).
+    Blended {
+        rows: &'a [Real],
+        blends: &'a [Blend],
+    },
+}
+
+/// Which two rows of a [`FeatureTarget::Blended`] a pixel row blends, and how.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Blend {
+    pub lower: usize,
+    pub upper: usize,
+    /// The upper row's share, in [0, 1].
+    pub weight: Real,
 }
 
 /// What the combined loss compares. Colour is RGB at `width x height`, as is depth.
@@ -197,12 +222,13 @@ impl Emit {
     }
 }
 
-/// Checks a per-pixel term's buffers (`what` names the term in errors) and returns how many
-/// pixels the mask counts (all without a mask).
+/// Checks a per-pixel term's buffers (`what` names the term in errors; a target of
+/// `target_len` values, or `None` for one checked by the term) and returns how many pixels the
+/// mask counts (all without a mask).
 pub(crate) fn pixel_counts(
     what: &str,
     rendered: &[Real],
-    target: &[Real],
+    target_len: Option<usize>,
     grad: &[Real],
     mask: Option<&[bool]>,
     channels: usize,
@@ -214,7 +240,9 @@ pub(crate) fn pixel_counts(
         ));
     }
     let pixels = rendered.len() / channels;
-    check_len(&format!("{what} target"), target.len(), rendered.len())?;
+    if let Some(len) = target_len {
+        check_len(&format!("{what} target"), len, rendered.len())?;
+    }
     check_len(
         &format!("{what} gradient buffer"),
         grad.len(),
@@ -313,25 +341,36 @@ pub(crate) fn lane_sum(v: &[Real]) -> f64 {
     acc.iter().chain(rest).map(|&a| f64::from(a)).sum()
 }
 
-/// (a.a, b.b, a.b) of two equally long vectors, in a fixed order.
-pub(crate) fn dots(a: &[Real], b: &[Real]) -> (Real, Real, Real) {
+/// `lo + f (hi - lo)`: a value of a blended target (exactly `lo` where `f` is 0 and `lo`
+/// finite).
+#[inline(always)]
+pub(crate) fn blend(lo: Real, hi: Real, f: Real) -> Real {
+    lo + f * (hi - lo)
+}
+
+/// (a.a, b.b, a.b) of two equally long vectors, in a fixed order, with b the blend of `lo`
+/// and `hi` by `f` (see [`blend`]).
+pub(crate) fn dots(a: &[Real], lo: &[Real], hi: &[Real], f: Real) -> (Real, Real, Real) {
     let (mut aa, mut bb, mut ab) = (
         [0.0 as Real; LANES],
         [0.0 as Real; LANES],
         [0.0 as Real; LANES],
     );
-    let (ca, cb) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
+    let n = a.len();
+    let (lo, hi) = (&lo[..n], &hi[..n]);
+    let full = n - n % LANES;
+    for c in (0..full).step_by(LANES) {
         for i in 0..LANES {
-            aa[i] += x[i] * x[i];
-            bb[i] += y[i] * y[i];
-            ab[i] += x[i] * y[i];
+            let (x, y) = (a[c + i], blend(lo[c + i], hi[c + i], f));
+            aa[i] += x * x;
+            bb[i] += y * y;
+            ab[i] += x * y;
         }
     }
     let (mut s_aa, mut s_bb, mut s_ab): (Real, Real, Real) =
         (aa.iter().sum(), bb.iter().sum(), ab.iter().sum());
-    for (&x, &y) in ra.iter().zip(rb) {
+    for j in full..n {
+        let (x, y) = (a[j], blend(lo[j], hi[j], f));
         s_aa += x * x;
         s_bb += y * y;
         s_ab += x * y;

@@ -13,7 +13,8 @@ use super::tally::Tally;
 use super::{FeatureGrid, GaussianMap, Keyframe};
 use crate::camera::{se3, Intrinsics, Pose};
 use crate::loss::{
-    DepthInputs, FeatureInputs, Loss, LossGrads, LossInputs, LossTerms, LossWeights,
+    Blend, DepthInputs, FeatureInputs, FeatureTarget, Loss, LossGrads, LossInputs, LossTerms,
+    LossWeights,
 };
 use crate::optim::{normalize_quats, Adam, AdamConfig, Groups, LR_NAMES};
 use crate::raster::{
@@ -186,7 +187,9 @@ struct Scratch {
     d_color: Vec<Real>,
     d_depth: Vec<Real>,
     d_feat: Vec<Real>,
-    target: Vec<Real>,
+    /// The feature target, as the loss reads it (`FeatureGrid::blended_into`).
+    target_rows: Vec<Real>,
+    target_blends: Vec<Blend>,
     /// The render under the keyframe's exposure.
     exposed: Vec<Real>,
     backward: BackwardScratch,
@@ -464,7 +467,7 @@ impl Mapper {
         sc.d_feat
             .resize(if with_features { fw * fh * k } else { 0 }, 0.0);
         if let (true, Some(g)) = (with_features, kf.features.as_ref()) {
-            g.upsample_into(fw, fh, &mut sc.target);
+            g.blended_into(fw, fh, &mut sc.target_rows, &mut sc.target_blends);
         }
         // The loss sees the render as this keyframe's exposure makes it (the first keyframe's
         // exposure is the map's own).
@@ -484,7 +487,10 @@ impl Mapper {
             }),
             features: with_features.then(|| FeatureInputs {
                 rendered: &r.features,
-                target: &sc.target,
+                target: FeatureTarget::Blended {
+                    rows: &sc.target_rows,
+                    blends: &sc.target_blends,
+                },
                 channels: k,
                 mask: None,
             }),
