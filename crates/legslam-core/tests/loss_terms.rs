@@ -82,6 +82,50 @@ fn depth_l1_counts_only_valid_targets() {
     assert_eq!((v, g), (0.0, [0.0; 6]));
 }
 
+/// Whole images, unmasked, whose pixel counts the terms split into runs of different lengths
+/// (256, 37 and 1 pixels), against plain loops.
+#[test]
+fn l1_terms_over_images_match_plain_loops() {
+    let mut rng = Rng::new(16);
+    for pixels in [512 * 3, 37 * 23, 211] {
+        let n = pixels * 3;
+        let (r, t) = (random(&mut rng, n, 0.0, 1.0), random(&mut rng, n, 0.0, 1.0));
+        let mut g = vec![9.0; n];
+        let v = l1(&r, &t, None, 3, &mut g).unwrap();
+        let want: f64 = r.iter().zip(&t).map(|(a, b)| (a - b).abs() as f64).sum();
+        assert!((v - want / n as f64).abs() < 1e-6, "{pixels}: {v}");
+        for i in 0..n {
+            let expect = (r[i] - t[i]).signum() as f64 / n as f64;
+            assert!((g[i] as f64 - expect).abs() < 1e-9, "{pixels}: colour {i}");
+        }
+        // Depth with every fifth target invalid (0, NaN, negative or infinite in turn).
+        let (r, mut t) = (
+            random(&mut rng, pixels, 0.5, 3.0),
+            random(&mut rng, pixels, 0.5, 3.0),
+        );
+        for (i, z) in t.iter_mut().enumerate().filter(|(i, _)| i % 5 == 2) {
+            *z = [0.0, Real::NAN, -1.0, Real::INFINITY][i / 5 % 4];
+        }
+        let valid: Vec<bool> = t.iter().map(|z| *z > 0.0 && z.is_finite()).collect();
+        let counted = valid.iter().filter(|&&v| v).count();
+        let mut g = vec![9.0; pixels];
+        let v = depth_l1(&r, &t, &mut g).unwrap();
+        let want: f64 = (0..pixels)
+            .filter(|&i| valid[i])
+            .map(|i| (r[i] - t[i]).abs() as f64)
+            .sum();
+        assert!((v - want / counted as f64).abs() < 1e-6, "{pixels}: {v}");
+        for i in 0..pixels {
+            let expect = if valid[i] {
+                (r[i] - t[i]).signum() as f64 / counted as f64
+            } else {
+                0.0
+            };
+            assert!((g[i] as f64 - expect).abs() < 1e-9, "{pixels}: depth {i}");
+        }
+    }
+}
+
 #[test]
 fn cosine_value_and_clamped_gradient() {
     // Orthogonal: 1 - 0; parallel: 1 - 1; a zero rendered vector: cos 0 and gradient

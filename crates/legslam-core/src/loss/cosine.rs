@@ -1,6 +1,6 @@
 //! Feature loss: mean over counted pixels of 1 - cos(rendered, target).
 
-use super::{blend, dots, pixel_counts, sum_items, Emit, FeatureTarget};
+use super::{blend, dots, pixel_counts, run_pixels, sum_items, Emit, FeatureTarget};
 use crate::Real;
 
 /// Norms below this are clamped to it: cos = r.t / (max(|r|, eps) max(|t|, eps)).
@@ -50,15 +50,11 @@ impl Rows<'_> {
 
 /// Checks `target` against a `pixels`-pixel rendered map of `channels` channels and returns
 /// how many pixels make one of its rows. A per-pixel target has no rows of its own: it is
-/// read in runs of up to 256 pixels (the largest that divides the image), so that the
-/// per-row work is spread thin.
+/// read in runs ([`run_pixels`]).
 fn row_pixels(target: FeatureTarget, pixels: usize, channels: usize) -> Result<usize, String> {
     let FeatureTarget::Blended { rows, blends } = target else {
         // `pixel_counts` checked a per-pixel target's length.
-        return Ok((1..=pixels.min(256))
-            .rev()
-            .find(|d| pixels % d == 0)
-            .unwrap_or(1));
+        return Ok(run_pixels(pixels));
     };
     if blends.is_empty() || pixels % blends.len() != 0 {
         return Err(format!(

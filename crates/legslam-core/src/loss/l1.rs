@@ -2,7 +2,9 @@
 //!
 //! The gradient of |d| at d = 0 is taken as 0 (as PyTorch's `sign`).
 
-use super::{check_len, pixel_counts, sum_items, Emit};
+use rayon::prelude::*;
+
+use super::{check_len, lane_sum_of, pixel_counts, run_pixels, sum_items, Emit};
 use crate::Real;
 
 #[inline]
@@ -44,20 +46,26 @@ pub(crate) fn l1_into(
     } else {
         1.0 / counted as Real
     };
-    let sum = sum_items(grad, channels, |p, g| {
-        if mask.is_some_and(|m| !m[p]) {
-            g.iter_mut().for_each(|g| emit.put(g, 0.0));
-            return 0.0;
-        }
-        let (r, t) = (
-            &rendered[p * channels..][..channels],
-            &target[p * channels..][..channels],
-        );
+    let run = run_pixels(rendered.len() / channels);
+    let sum = sum_items(grad, run * channels, |i, g| {
+        let at = i * g.len();
+        let (r, t) = (&rendered[at..][..g.len()], &target[at..][..g.len()]);
+        let Some(mask) = mask else {
+            return lane_sum_of(g.len(), |j| {
+                let d = r[j] - t[j];
+                emit.put(&mut g[j], inv * sign(d));
+                d.abs()
+            });
+        };
         let mut s = 0.0f64;
-        for ((g, &r), &t) in g.iter_mut().zip(r).zip(t) {
-            let d = r - t;
-            s += f64::from(d.abs());
-            emit.put(g, inv * sign(d));
+        for (p, &counts) in mask[i * run..][..run].iter().enumerate() {
+            for j in p * channels..(p + 1) * channels {
+                let d = r[j] - t[j];
+                if counts {
+                    s += f64::from(d.abs());
+                }
+                emit.put(&mut g[j], if counts { inv * sign(d) } else { 0.0 });
+            }
         }
         s
     });
@@ -87,20 +95,25 @@ pub(crate) fn depth_l1_into(
 ) -> Result<f64, String> {
     check_len("target depth", target.len(), rendered.len())?;
     check_len("depth gradient buffer", grad.len(), rendered.len())?;
-    let counted = target.iter().filter(|&&z| valid_depth(z)).count();
+    let counted = target.par_iter().filter(|&&z| valid_depth(z)).count();
     let inv = if counted == 0 {
         0.0
     } else {
         1.0 / counted as Real
     };
-    let sum = sum_items(grad, 1, |p, g| {
-        let (r, t) = (rendered[p], target[p]);
-        if !valid_depth(t) {
-            emit.put(&mut g[0], 0.0);
-            return 0.0;
-        }
-        emit.put(&mut g[0], inv * sign(r - t));
-        f64::from((r - t).abs())
+    let run = run_pixels(rendered.len());
+    let sum = sum_items(grad, run, |i, g| {
+        let at = i * run;
+        let (r, t) = (&rendered[at..][..run], &target[at..][..run]);
+        lane_sum_of(run, |j| {
+            let (d, valid) = (r[j] - t[j], valid_depth(t[j]));
+            emit.put(&mut g[j], if valid { inv * sign(d) } else { 0.0 });
+            if valid {
+                d.abs()
+            } else {
+                0.0
+            }
+        })
     });
     Ok(if counted == 0 {
         0.0

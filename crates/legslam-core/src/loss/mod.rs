@@ -325,8 +325,34 @@ pub(crate) fn sum_items_zip(
     partial.iter().sum()
 }
 
+/// Pixels a per-pixel term takes at a time: up to 256, the most that divide the image, so that
+/// the work per run (a closure call, a sum in f64) is spread thin and the loops over a run's
+/// values vectorise.
+pub(crate) fn run_pixels(pixels: usize) -> usize {
+    (1..=pixels.min(256))
+        .rev()
+        .find(|d| pixels % d == 0)
+        .unwrap_or(1)
+}
+
 /// Independent partial sums, so the loop vectorises (a single running sum cannot be reordered).
 const LANES: usize = 8;
+
+/// Sum of `f(i)` over `0..n`, in `LANES` partial sums of `Real` and then in f64, in a fixed
+/// order: for the values of a run, short enough that `Real` partial sums lose nothing that
+/// matters.
+#[inline(always)]
+pub(crate) fn lane_sum_of(n: usize, mut f: impl FnMut(usize) -> Real) -> f64 {
+    let mut acc = [0.0 as Real; LANES];
+    let full = n - n % LANES;
+    for c in (0..full).step_by(LANES) {
+        for (l, a) in acc.iter_mut().enumerate() {
+            *a += f(c + l);
+        }
+    }
+    let tail: f64 = (full..n).map(|i| f64::from(f(i))).sum();
+    acc.iter().map(|&a| f64::from(a)).sum::<f64>() + tail
+}
 
 /// Sum of `v`, in a fixed order.
 pub(crate) fn lane_sum(v: &[Real]) -> f64 {
