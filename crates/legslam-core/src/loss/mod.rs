@@ -295,36 +295,6 @@ pub(crate) fn sum_items(
     partial.iter().sum()
 }
 
-/// [`sum_items`] over two buffers with the same number of items, item `i` of each handed to
-/// `f` together.
-pub(crate) fn sum_items_zip(
-    buf: &mut [Real],
-    item: usize,
-    other: &mut [Real],
-    other_item: usize,
-    f: impl Fn(usize, &mut [Real], &mut [Real]) -> f64 + Sync,
-) -> f64 {
-    if item == 0 || other_item == 0 || buf.len() < item {
-        return 0.0;
-    }
-    let per = (buf.len() / item).div_ceil(BLOCKS);
-    let mut partial = [0.0f64; BLOCKS];
-    partial
-        .par_iter_mut()
-        .zip(buf.par_chunks_mut(per * item))
-        .zip(other.par_chunks_mut(per * other_item))
-        .enumerate()
-        .for_each(|(b, ((p, chunk), other))| {
-            *p = chunk
-                .chunks_exact_mut(item)
-                .zip(other.chunks_exact_mut(other_item))
-                .enumerate()
-                .map(|(i, (v, o))| f(b * per + i, v, o))
-                .sum();
-        });
-    partial.iter().sum()
-}
-
 /// Pixels a per-pixel term takes at a time: up to 256, the most that divide the image, so that
 /// the work per run (a closure call, a sum in f64) is spread thin and the loops over a run's
 /// values vectorise.

@@ -15,7 +15,7 @@
 
 use rayon::prelude::*;
 
-use super::{check_len, lane_sum, sum_items_zip, Emit};
+use super::{check_len, lane_sum, sum_items, Emit};
 use crate::Real;
 
 const RADIUS: usize = 5;
@@ -31,13 +31,13 @@ fn kernel() -> [Real; RADIUS + 1] {
 }
 
 /// Reusable SSIM workspace, grown on demand: per image row, five lines with zero margins
-/// (inputs of the horizontal filter), five horizontal and five vertical results; and a zero
-/// line standing in for rows beyond the image.
+/// (inputs of the horizontal filter) and five horizontal results; and a zero line standing in
+/// for rows beyond the image. The vertical results are used where they are made, a row at a
+/// time (as whole images they were 5 more maps written and read back, past the caches).
 #[derive(Debug)]
 pub struct Ssim {
     padded: Vec<Real>,
     horizontal: Vec<Real>,
-    vertical: Vec<Real>,
     zeros: Vec<Real>,
     shape: (usize, usize, usize),
     /// The per-row loops compiled for AVX2 (eight values an instruction instead of the
@@ -62,7 +62,6 @@ impl Ssim {
         Ssim {
             padded: Vec::new(),
             horizontal: Vec::new(),
-            vertical: Vec::new(),
             zeros: Vec::new(),
             shape: (0, 0, 0),
             avx2: avx2 && crate::raster::avx2_available(),
@@ -128,7 +127,6 @@ impl Ssim {
         }
         self.padded.resize(5 * line * height, 0.0);
         self.horizontal.resize(5 * n, 0.0);
-        self.vertical.resize(5 * n, 0.0);
         self.zeros.resize(row, 0.0);
         let k = kernel();
         let inv_n = 1.0 / n as Real;
@@ -162,36 +160,33 @@ impl Ssim {
         // Vertical filters, then per pixel the SSIM and its derivatives with respect to the
         // three filtered maps that depend on x, written into padded lines 0, 1, 2 (free now).
         let (horizontal, zeros) = (&self.horizontal, &self.zeros[..]);
-        let total = sum_items_zip(
-            &mut self.vertical,
-            5 * row,
-            &mut self.padded,
-            5 * line,
-            |r, v, p| {
-                for (m, out) in v.chunks_exact_mut(row).enumerate() {
-                    let map = (&horizontal[..], 5 * row, m * row);
-                    filter_column(avx2, &k, map, zeros, height, r, out);
-                }
-                let mut maps = v.chunks_exact_mut(row);
-                let mut next = || maps.next().unwrap_or_default();
-                let (mx, my, exx, eyy, exy) = (next(), next(), next(), next(), next());
-                let mut lines = p.chunks_exact_mut(line).map(|l| &mut l[margin..][..row]);
-                let mut next = || lines.next().unwrap_or_default();
-                let (d_mx, d_exx, d_exy) = (next(), next(), next());
-                let stats = Stats {
-                    mx,
-                    my,
-                    exx,
-                    eyy,
-                    exy,
-                    d_mx,
-                    d_exx,
-                    d_exy,
-                };
-                stats.run(avx2, inv_n);
-                lane_sum(exy)
-            },
-        );
+        let total = sum_items(&mut self.padded, 5 * line, |r, p| {
+            // The row's five vertical results (tens of kB, allocated per row: the summing
+            // helper keeps no per-thread state).
+            let mut v = vec![0.0; 5 * row];
+            for (m, out) in v.chunks_exact_mut(row).enumerate() {
+                let map = (&horizontal[..], 5 * row, m * row);
+                filter_column(avx2, &k, map, zeros, height, r, out);
+            }
+            let mut maps = v.chunks_exact_mut(row);
+            let mut next = || maps.next().unwrap_or_default();
+            let (mx, my, exx, eyy, exy) = (next(), next(), next(), next(), next());
+            let mut lines = p.chunks_exact_mut(line).map(|l| &mut l[margin..][..row]);
+            let mut next = || lines.next().unwrap_or_default();
+            let (d_mx, d_exx, d_exy) = (next(), next(), next());
+            let stats = Stats {
+                mx,
+                my,
+                exx,
+                eyy,
+                exy,
+                d_mx,
+                d_exx,
+                d_exy,
+            };
+            stats.run(avx2, inv_n);
+            lane_sum(exy)
+        });
         let Some((grad, emit)) = grad else {
             return Ok(total / n as f64);
         };
@@ -205,12 +200,10 @@ impl Ssim {
                 }
             });
         let horizontal = &self.horizontal;
-        self.vertical
-            .par_chunks_mut(5 * row)
-            .zip(grad.par_chunks_mut(row))
-            .enumerate()
-            .for_each(|(r, (v, g))| {
-                for (m, out) in v.chunks_exact_mut(row).take(3).enumerate() {
+        grad.par_chunks_mut(row).enumerate().for_each_init(
+            || vec![0.0; 3 * row],
+            |v, (r, g)| {
+                for (m, out) in v.chunks_exact_mut(row).enumerate() {
                     let map = (&horizontal[..], 5 * row, m * row);
                     filter_column(avx2, &k, map, zeros, height, r, out);
                 }
@@ -218,7 +211,8 @@ impl Ssim {
                 let (dm, rest) = v.split_at(row);
                 let (dxx, dxy) = rest.split_at(row);
                 chain(avx2, emit, [dm, dxx, &dxy[..row], xs, ys], &mut g[..row]);
-            });
+            },
+        );
         Ok(total / n as f64)
     }
 }
