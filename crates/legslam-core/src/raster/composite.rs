@@ -231,20 +231,17 @@ pub(crate) struct TileAcc {
     done: [Real; TILE_LANES],
     /// The last contributor's position in the tile's list, + 1.
     pub end: [u32; TILE_LANES],
-    /// [TILE_PIXELS, k]
-    pub feat: Vec<Real>,
     active: usize,
 }
 
 impl TileAcc {
-    pub fn new(k: usize) -> Self {
+    pub fn new() -> Self {
         TileAcc {
             trans: [1.0; TILE_LANES],
             color: [[0.0; TILE_LANES]; 3],
             depth: [0.0; TILE_LANES],
             done: [0.0; TILE_LANES],
             end: [0; TILE_LANES],
-            feat: vec![0.0; TILE_PIXELS * k],
             active: 0,
         }
     }
@@ -256,7 +253,6 @@ impl TileAcc {
         self.depth.fill(0.0);
         self.done.fill(0.0);
         self.end.fill(0);
-        self.feat.fill(0.0);
         self.active = pixels;
     }
 }
@@ -272,24 +268,29 @@ pub(crate) struct TileInputs<'a> {
     /// Whether the layer accumulates colour and depth (the features' own layer has none).
     pub colour: bool,
     pub cfg: &'a RasterConfig,
+    /// The layer's width in pixels.
+    pub width: usize,
 }
 
-/// Composites the tile's list `list` (front to back) into `acc`: Gaussian-major, so that only
-/// the pixels inside each Gaussian's span are visited, eight at a time; every pixel still sees
-/// its Gaussians in depth order. With `falloffs`, appends each group's exponential there (zero
-/// in the lanes not covered), for [`cover_kept`].
+/// Composites the tile's list `list` (front to back) into `acc`, and the features into `feat`
+/// (the rows of the layer's feature image from the tile's first, [rows, width, k], zero where
+/// the tile lies): Gaussian-major, so that only the pixels inside each Gaussian's span are
+/// visited, eight at a time; every pixel still sees its Gaussians in depth order. With
+/// `falloffs`, appends each group's exponential there (zero in the lanes not covered), for
+/// [`cover_kept`].
 #[inline(always)]
 pub(crate) fn composite<L: Lanes>(
     acc: &mut TileAcc,
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
+    feat: &mut [Real],
     falloffs: Option<&mut Vec<Real>>,
 ) {
     if inputs.colour {
-        composite_with::<L, true>(acc, inputs, list, r, falloffs)
+        composite_with::<L, true>(acc, inputs, list, r, feat, falloffs)
     } else {
-        composite_with::<L, false>(acc, inputs, list, r, falloffs)
+        composite_with::<L, false>(acc, inputs, list, r, feat, falloffs)
     }
 }
 
@@ -300,6 +301,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
+    feat: &mut [Real],
     mut falloffs: Option<&mut Vec<Real>>,
 ) {
     let TileInputs {
@@ -307,6 +309,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
         features,
         k,
         cfg,
+        width,
         ..
     } = *inputs;
     let cols = r.columns();
@@ -363,10 +366,11 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
                 let mut bits = L::bits(add);
+                let p0 = (g.y - r.y0) * width + r.x0 + g.gx;
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;
-                    L::axpy(&mut acc.feat[(lp + l) * k..][..k], w[l], f);
+                    L::axpy(&mut feat[(p0 + l) * k..][..k], w[l], f);
                 }
             }
         });

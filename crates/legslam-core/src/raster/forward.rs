@@ -267,10 +267,11 @@ fn composite_layer(
         k,
         colour,
         cfg,
+        width: w,
     };
     outs.into_par_iter().for_each(
         |(ty, (((((((col, dep), alp), fea), end), tr), fo), starts))| {
-            let mut acc = TileAcc::new(k);
+            let mut acc = TileAcc::new();
             fo.clear();
             for (tx, start) in starts.iter_mut().enumerate() {
                 let t = ty * grid.tiles_x + tx;
@@ -278,9 +279,16 @@ fn composite_layer(
                 let list = bins.list(t);
                 acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
                 *start = fo.len();
+                // The features accumulate in the image itself (a tile's own buffer cost a
+                // 64 kB copy a tile at K = 64).
+                if k > 0 {
+                    for y in 0..r.y_end - r.y0 {
+                        fea[(y * w + r.x0) * k..(y * w + r.x_end) * k].fill(0.0);
+                    }
+                }
                 if !list.is_empty() {
                     let kept = keep.then_some(&mut *fo);
-                    composite_tile(simd, &mut acc, &inputs, list, &r, kept);
+                    composite_tile(simd, &mut acc, &inputs, list, &r, &mut *fea, kept);
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -296,9 +304,6 @@ fn composite_layer(
                         }
                         if !alp.is_empty() {
                             alp[p] = 1.0 - acc.trans[lp];
-                        }
-                        if k > 0 {
-                            fea[p * k..][..k].copy_from_slice(&acc.feat[lp * k..][..k]);
                         }
                         end[p] = acc.end[lp];
                         tr[p] = acc.trans[lp];
@@ -316,6 +321,7 @@ fn composite_tile(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
+    feat: &mut [Real],
     falloffs: Option<&mut Vec<Real>>,
 ) {
     dispatch!(
@@ -325,6 +331,7 @@ fn composite_tile(
             inputs: &TileInputs,
             list: &[u32],
             r: &TileRect,
+            feat: &mut [Real],
             falloffs: Option<&mut Vec<Real>>,
         )
     )
