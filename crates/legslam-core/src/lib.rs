@@ -15,6 +15,7 @@ pub mod loss;
 pub mod map;
 pub mod optim;
 pub mod options;
+mod prefetch;
 pub mod raster;
 pub mod rng;
 mod rows;

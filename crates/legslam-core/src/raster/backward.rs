@@ -9,9 +9,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{
-    cover_kept, for_each_group, prefetch, prefetch_ahead, TileRect, TILE_LANES,
-};
+use super::composite::{cover_kept, for_each_group, prefetch_ahead, TileRect, TILE_LANES};
 use super::forward::{split_chunks, Layer};
 use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{V2, V3};
@@ -20,6 +18,7 @@ use super::project_backward::{backward_task, conic_to_cov_grad, BlockGrads, Scre
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
 use crate::optim::rows_in;
+use crate::prefetch::prefetch;
 use crate::Real;
 
 /// The screen-space gradient slots of a (tile, Gaussian) pair, ahead of its K feature slots.

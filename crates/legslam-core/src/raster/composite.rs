@@ -8,6 +8,7 @@ use super::forward::Splat;
 use super::lanes::{Lanes, LANES};
 use super::tiles::Grid;
 use super::{RasterConfig, TILE};
+use crate::prefetch::prefetch;
 use crate::Real;
 
 /// Pixels of a tile.
@@ -202,24 +203,6 @@ pub(crate) fn prefetch_ahead(
         prefetch(std::slice::from_ref(&splats[gi]));
         prefetch(&features[gi * k..][..k]);
     }
-}
-
-/// Asks the cache for the lines that hold `v`.
-#[inline(always)]
-pub(crate) fn prefetch<T>(v: &[T]) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let start = v.as_ptr() as usize;
-        let end = start + std::mem::size_of_val(v);
-        // From the line that holds the first byte to the one that holds the last.
-        for line in (start & !63..end).step_by(64) {
-            // SAFETY: prefetching never faults, whatever the address.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = v;
 }
 
 /// Per-pixel accumulators of one tile, structure of arrays, indexed (y - y0) * TILE + (x - x0).
