@@ -143,53 +143,62 @@ impl Loss {
         let l1_scale = w.color * (1.0 - w.ssim_lambda);
         let ssim_scale = w.color * w.ssim_lambda;
         check_len("rendered colour", inputs.color.len(), width * height * 3)?;
-        let mut t = LossTerms {
-            color_l1: l1::l1_into(
+        let ssim = &mut self.ssim;
+        let LossGrads {
+            color: grad_color,
+            depth: grad_depth,
+            features: grad_features,
+        } = grads;
+        let colour = || -> Result<(f64, f64), String> {
+            let l1 = l1::l1_into(
                 inputs.color,
                 inputs.target_color,
                 inputs.color_mask,
                 3,
-                grads.color,
+                grad_color,
                 Emit::set(l1_scale),
-            )?,
-            ..LossTerms::default()
+            )?;
+            // d(1 - SSIM) = -dSSIM, added onto the L1 gradient.
+            let ssim_grad = (ssim_scale != 0.0).then_some((grad_color, Emit::add(-ssim_scale)));
+            let s = ssim.run(
+                inputs.color,
+                inputs.target_color,
+                (width, height, 3),
+                ssim_grad,
+            )?;
+            Ok((l1, s))
         };
-        // d(1 - SSIM) = -dSSIM, added onto the L1 gradient.
-        let ssim_grad = (ssim_scale != 0.0).then_some((&mut *grads.color, Emit::add(-ssim_scale)));
-        t.ssim = self.ssim.run(
-            inputs.color,
-            inputs.target_color,
-            (width, height, 3),
-            ssim_grad,
-        )?;
-        match (inputs.depth, grads.depth) {
+        let depth = || match (inputs.depth, grad_depth) {
             (Some(d), Some(g)) => {
                 check_len("rendered depth", d.rendered.len(), width * height)?;
-                t.depth_l1 = l1::depth_l1_into(d.rendered, d.target, g, Emit::set(w.depth))?;
+                l1::depth_l1_into(d.rendered, d.target, g, Emit::set(w.depth))
             }
-            (None, None) => {}
-            _ => {
-                return Err("depth needs both its inputs and a gradient buffer, or neither".into())
-            }
-        }
-        match (inputs.features, grads.features) {
-            (Some(f), Some(g)) => {
-                t.feature = cosine::cosine_into(
-                    f.rendered,
-                    f.target,
-                    f.channels,
-                    f.mask,
-                    g,
-                    Emit::set(w.feature),
-                )?;
-            }
-            (None, None) => {}
-            _ => {
-                return Err(
-                    "features need both their inputs and a gradient buffer, or neither".into(),
-                )
-            }
-        }
+            (None, None) => Ok(0.0),
+            _ => Err("depth needs both its inputs and a gradient buffer, or neither".into()),
+        };
+        let feature = || match (inputs.features, grad_features) {
+            (Some(f), Some(g)) => cosine::cosine_into(
+                f.rendered,
+                f.target,
+                f.channels,
+                f.mask,
+                g,
+                Emit::set(w.feature),
+            ),
+            (None, None) => Ok(0.0),
+            _ => Err("features need both their inputs and a gradient buffer, or neither".into()),
+        };
+        // The colour terms beside depth and features: each term is parallel within, and one
+        // after another each ended with a thread waiting for the other.
+        let (colour, (depth, feature)) = rayon::join(colour, || rayon::join(depth, feature));
+        let (color_l1, ssim) = colour?;
+        let mut t = LossTerms {
+            color_l1,
+            ssim,
+            depth_l1: depth?,
+            feature: feature?,
+            ..LossTerms::default()
+        };
         t.total = f64::from(l1_scale) * t.color_l1
             + f64::from(ssim_scale) * (1.0 - t.ssim)
             + f64::from(w.depth) * t.depth_l1
