@@ -105,7 +105,7 @@ pub(crate) fn cosine_into(
     };
     let sum = sum_items(grad, row, |y, g| {
         let (lo, hi, f) = rows.get(y);
-        let pixels = Pixels {
+        let pixels = PixelRun {
             rendered: &rendered[y * row..][..row],
             lo,
             hi,
@@ -122,7 +122,7 @@ pub(crate) fn cosine_into(
 }
 
 /// A run of pixels: rendered vectors, their targets `lo + f (hi - lo)` and which count.
-struct Pixels<'a> {
+struct PixelRun<'a> {
     rendered: &'a [Real],
     lo: &'a [Real],
     hi: &'a [Real],
@@ -130,7 +130,7 @@ struct Pixels<'a> {
     mask: Option<&'a [bool]>,
 }
 
-impl Pixels<'_> {
+impl PixelRun<'_> {
     /// Sum of 1 - cos over the counted pixels; `scale * d(1 - cos)/d(rendered)` emitted into
     /// `g` (zero where not counted).
     #[inline(always)]
