@@ -1,12 +1,13 @@
 //! Image losses of the mapper, each returning its value and writing d(loss)/d(rendered image)
-//! into a caller-provided buffer (no allocation beyond the reusable [`Ssim`] / [`Loss`]
-//! workspaces):
+//! into a caller-provided buffer (the image-sized buffers are the reusable [`Ssim`] / [`Loss`]
+//! workspaces; SSIM takes a row's scratch at a time):
 //!
 //! L = w_color ((1 - lambda) L1(color) + lambda (1 - SSIM(color)))
 //!   + w_depth L1 over valid depth + w_feat mean(1 - cos(feature, target feature)).
 //!
-//! Images are row-major, channel-last `&[Real]`. Values are accumulated in f64 in fixed-size
-//! blocks summed in a fixed order, so results do not depend on the thread count.
+//! Images are row-major, channel-last `&[Real]`. Values are summed over fixed runs of pixels
+//! (rows, or up to 256 pixels; some terms in `Real` lanes within a run), then in f64 over fixed
+//! blocks of runs, in a fixed order, so results do not depend on the thread count.
 
 // Real -> f64 via f64::from is lossless, and a no-op under the `f64` feature.
 #![allow(clippy::useless_conversion)]
