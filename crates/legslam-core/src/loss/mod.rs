@@ -318,9 +318,9 @@ pub(crate) fn run_pixels(pixels: usize) -> usize {
 /// Independent partial sums, so the loop vectorises (a single running sum cannot be reordered).
 const LANES: usize = 8;
 
-/// Sum of `f(i)` over `0..n`, in `LANES` partial sums of `Real` and then in f64, in a fixed
-/// order: for the values of a run, short enough that `Real` partial sums lose nothing that
-/// matters.
+/// Sum of `f(i)` over `0..n` (called in order), in `LANES` partial sums of `Real` and then
+/// with the tail in f64, in a fixed order: for the values of a run, short enough that `Real`
+/// partial sums lose nothing that matters.
 #[inline(always)]
 pub(crate) fn lane_sum_of(n: usize, mut f: impl FnMut(usize) -> Real) -> f64 {
     let mut acc = [0.0 as Real; LANES];
@@ -330,21 +330,13 @@ pub(crate) fn lane_sum_of(n: usize, mut f: impl FnMut(usize) -> Real) -> f64 {
             *a += f(c + l);
         }
     }
-    let tail: f64 = (full..n).map(|i| f64::from(f(i))).sum();
-    acc.iter().map(|&a| f64::from(a)).sum::<f64>() + tail
+    let tail = (full..n).map(f);
+    acc.into_iter().chain(tail).map(f64::from).sum()
 }
 
-/// Sum of `v`, in a fixed order.
+/// Sum of `v`, in a fixed order ([`lane_sum_of`]).
 pub(crate) fn lane_sum(v: &[Real]) -> f64 {
-    let mut acc = [0.0 as Real; LANES];
-    let chunks = v.chunks_exact(LANES);
-    let rest = chunks.remainder();
-    for c in chunks {
-        for (a, &x) in acc.iter_mut().zip(c) {
-            *a += x;
-        }
-    }
-    acc.iter().chain(rest).map(|&a| f64::from(a)).sum()
+    lane_sum_of(v.len(), |i| v[i])
 }
 
 /// `lo + f (hi - lo)`: a value of a blended target (exactly `lo` where `f` is 0 and `lo`
