@@ -214,9 +214,12 @@ pub fn backward_into(
             for (at, &i) in mine.iter().enumerate() {
                 // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
                 if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
-                    for (ls, stride) in layer_scratch.iter().zip(strides).take(layers_walked) {
+                    for l in 0..layers_walked {
+                        let (ls, stride) = (layer_scratch[l], strides[l]);
                         for &pr in ls.pairs(ahead as usize) {
-                            prefetch(&ls.pair_grads[pr as usize * stride..][..stride]);
+                            if layers[l].added[pr as usize] {
+                                prefetch(&ls.pair_grads[pr as usize * stride..][..stride]);
+                            }
                         }
                     }
                 }
@@ -230,6 +233,9 @@ pub fn backward_into(
                     let ls = layer_scratch[l];
                     let stride = strides[l];
                     for &pr in ls.pairs(i) {
+                        if !layers[l].added[pr as usize] {
+                            continue;
+                        }
                         let s = &ls.pair_grads[pr as usize * stride..][..stride];
                         let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
                         sg.xy += V2::new(s[slot::X], s[slot::Y]);
@@ -282,8 +288,8 @@ pub fn backward_into(
 }
 
 /// Walks every tile of `job`'s layer into per-pair gradients (each tile owns a contiguous
-/// range of `ls.pair_grads` and writes every slot of it), and meanwhile lists each Gaussian's
-/// pairs.
+/// range of `ls.pair_grads` and writes the slots of the pairs that added to a pixel), and
+/// meanwhile lists each Gaussian's pairs.
 fn walk_layer(simd: Simd, job: &TileJob, ls: &mut LayerScratch) {
     let layer = job.layer;
     let bins = &layer.bins;
@@ -458,7 +464,7 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
     let list = st.bins.list(t);
     // Past the last pixel's last contributor nothing has a gradient.
     let walked = tg.end.iter().copied().max().unwrap_or(0) as usize;
-    slots[walked * stride..].fill(0.0);
+    let added = &st.added[st.bins.tile_start[t] as usize..][..walked];
     let (zero, one, half) = (L::splat(0.0), L::splat(1.0), L::splat(0.5));
     let gf = job.grads.features.filter(|_| k > 0);
     // The forward pass's falloffs, when it kept them: a group at a time, in the same order.
@@ -467,12 +473,16 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
         .then(|| &st.falloffs[t / st.grid.tiles_x][st.falloff_start[t]..]);
     let mut group = 0;
     for (j, &gi) in list[..walked].iter().enumerate() {
+        // Only the pairs that added to a pixel have a gradient (the per-Gaussian sums skip
+        // the others' slots, left unwritten).
+        if !added[j] {
+            continue;
+        }
         prefetch_ahead(list, j, &st.splats, job.features, k);
         let s = &st.splats[gi as usize];
         let f = &job.features[gi as usize * k..][..k];
-        let slot = &mut slots[j * stride..][..stride];
-        slot.fill(0.0);
-        let (slot, feat_slot) = slot.split_at_mut(SLOTS);
+        let (slot, feat_slot) = slots[j * stride..][..stride].split_at_mut(SLOTS);
+        feat_slot.fill(0.0);
         let color = [
             L::splat(s.color.x),
             L::splat(s.color.y),
@@ -481,7 +491,6 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
         let depth = L::splat(s.depth);
         let (a, b, c) = (s.conic.x, s.conic.y, s.conic.z);
         let mut acc = [zero; SLOTS];
-        let mut touched = false;
         for_each_group(s, &r, |grp| {
             let lp = grp.lp;
             // The pixels whose list reaches this Gaussian.
@@ -498,7 +507,6 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
             if L::bits(ok) == 0 {
                 return;
             }
-            touched = true;
             let t = L::load(&tg.trans[lp..]);
             let wgt = L::select(ok, cv.alpha.mul(t), zero);
             // Spelt out, as the splats above: `array::map` was not inlined into the AVX2 walk,
@@ -573,11 +581,6 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
             next.store_where(ok, t, &mut tg.trans[lp..]);
             prefix_next.store_where(ok, prefix, &mut tg.prefix[lp..]);
         });
-        if !touched {
-            // The slot is zero already (a Gaussian whose ellipse misses the tile's pixels,
-            // or reaches only pixels that stopped compositing before it).
-            continue;
-        }
         // Eight of the pair's sums in one transposition, then the rest.
         let (first, rest) = acc.split_at(8);
         slot[..8].copy_from_slice(&L::hsum8(first.try_into().unwrap()));

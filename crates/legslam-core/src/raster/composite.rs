@@ -255,25 +255,34 @@ pub(crate) struct TileInputs<'a> {
     pub width: usize,
 }
 
-/// Composites the tile's list `list` (front to back) into `acc`, and the features into `feat`
-/// (the rows of the layer's feature image from the tile's first, [rows, width, k], zero where
-/// the tile lies): Gaussian-major, so that only the pixels inside each Gaussian's span are
-/// visited, eight at a time; every pixel still sees its Gaussians in depth order. With
-/// `falloffs`, appends each group's exponential there (zero in the lanes not covered), for
-/// [`cover_kept`].
+/// What compositing a tile writes besides its accumulators.
+pub(crate) struct TileOut<'a> {
+    /// The rows of the layer's feature image from the tile's first, [rows, width, k] (zero
+    /// where the tile lies).
+    pub feat: &'a mut [Real],
+    /// Per entry of the tile's list: whether the Gaussian added to one of its pixels.
+    pub added: &'a mut [bool],
+    /// Where each group's exponential is appended (zero in the lanes not covered), for
+    /// [`cover_kept`]: of the Gaussians that added to a pixel only, as the backward pass walks
+    /// no others.
+    pub falloffs: Option<&'a mut Vec<Real>>,
+}
+
+/// Composites the tile's list `list` (front to back) into `acc` and `out`: Gaussian-major, so
+/// that only the pixels inside each Gaussian's span are visited, eight at a time; every pixel
+/// still sees its Gaussians in depth order.
 #[inline(always)]
 pub(crate) fn composite<L: Lanes>(
     acc: &mut TileAcc,
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
-    feat: &mut [Real],
-    falloffs: Option<&mut Vec<Real>>,
+    out: TileOut,
 ) {
     if inputs.colour {
-        composite_with::<L, true>(acc, inputs, list, r, feat, falloffs)
+        composite_with::<L, true>(acc, inputs, list, r, out)
     } else {
-        composite_with::<L, false>(acc, inputs, list, r, feat, falloffs)
+        composite_with::<L, false>(acc, inputs, list, r, out)
     }
 }
 
@@ -284,8 +293,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
-    feat: &mut [Real],
-    mut falloffs: Option<&mut Vec<Real>>,
+    out: TileOut,
 ) {
     let TileInputs {
         splats,
@@ -295,6 +303,12 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
         width,
         ..
     } = *inputs;
+    let TileOut {
+        feat,
+        added,
+        mut falloffs,
+    } = out;
+    added.fill(false);
     let cols = r.columns();
     let (zero, one) = (L::splat(0.0), L::splat(1.0));
     let t_min = L::splat(cfg.transmittance_min);
@@ -309,6 +323,8 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             L::splat(s.color.z),
         ];
         let depth = L::splat(s.depth);
+        let kept_from = falloffs.as_ref().map_or(0, |kept| kept.len());
+        let mut any = false;
         for_each_group(s, r, |g| {
             let lp = g.lp;
             // Pixels that have stopped are left out before the exponential. The falloffs
@@ -334,6 +350,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
                 one.store_where(stop, done, &mut acc.done[lp..]);
                 acc.active -= stopped.count_ones() as usize;
             }
+            any |= L::bits(add) != 0;
             let wgt = L::select(add, c.alpha.mul(t), zero);
             if COLOUR {
                 for (ch, v) in acc.color.iter_mut().zip(color) {
@@ -357,6 +374,12 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
                 }
             }
         });
+        added[j] = any;
+        if !any {
+            if let Some(kept) = falloffs.as_mut() {
+                kept.truncate(kept_from);
+            }
+        }
         if acc.active == 0 {
             break;
         }

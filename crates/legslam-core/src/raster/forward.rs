@@ -4,7 +4,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{composite, TileAcc, TileInputs, TileRect};
+use super::composite::{composite, TileAcc, TileInputs, TileOut, TileRect};
 use super::lanes::{dispatch, Simd};
 use super::math::{V2, V3};
 use super::project;
@@ -71,6 +71,10 @@ pub(crate) struct Layer {
     pub falloffs: Vec<Vec<Real>>,
     /// Per tile, where its groups start in its row's `falloffs`.
     pub falloff_start: Vec<usize>,
+    /// Per pair (entry of `bins.pair_gauss`): whether the Gaussian added to a pixel of the
+    /// tile. The others (a third of the features' layer's pairs: an ellipse between pixel
+    /// centres, pixels already opaque) have no gradient, and the backward pass skips them.
+    pub added: Vec<bool>,
 }
 
 impl Layer {
@@ -245,6 +249,7 @@ fn composite_layer(
         layer.falloffs.resize_with(grid.tiles_y, Vec::new);
     }
     layer.falloff_start.resize(grid.len(), 0);
+    layer.added.resize(layer.bins.pair_gauss.len(), false);
     let rows = TILE * w;
     let n = grid.tiles_y;
     // Colour and depth are accumulated only where they are output.
@@ -258,6 +263,7 @@ fn composite_layer(
         .zip(split_chunks(&mut layer.pixel_t, rows, n))
         .zip(layer.falloffs.iter_mut())
         .zip(layer.falloff_start.chunks_mut(grid.tiles_x))
+        .zip(split_rows(&mut layer.added, &layer.bins, &grid))
         .enumerate()
         .collect();
     let bins = &layer.bins;
@@ -270,9 +276,10 @@ fn composite_layer(
         width: w,
     };
     outs.into_par_iter().for_each(
-        |(ty, (((((((col, dep), alp), fea), end), tr), fo), starts))| {
+        |(ty, ((((((((col, dep), alp), fea), end), tr), fo), starts), added))| {
             let mut acc = TileAcc::new();
             fo.clear();
+            let row_start = bins.tile_start[ty * grid.tiles_x] as usize;
             for (tx, start) in starts.iter_mut().enumerate() {
                 let t = ty * grid.tiles_x + tx;
                 let r = TileRect::new(&grid, t, w, h);
@@ -287,8 +294,12 @@ fn composite_layer(
                     }
                 }
                 if !list.is_empty() {
-                    let kept = keep.then_some(&mut *fo);
-                    composite_tile(simd, &mut acc, &inputs, list, &r, &mut *fea, kept);
+                    let out = TileOut {
+                        feat: &mut *fea,
+                        added: &mut added[bins.tile_start[t] as usize - row_start..][..list.len()],
+                        falloffs: keep.then_some(&mut *fo),
+                    };
+                    composite_tile(simd, &mut acc, &inputs, list, &r, out);
                 }
                 for y in r.y0..r.y_end {
                     for x in r.x0..r.x_end {
@@ -314,6 +325,19 @@ fn composite_layer(
     );
 }
 
+/// Each row of tiles' part of the per-pair `flags` (a row's lists are consecutive).
+fn split_rows<'a>(flags: &'a mut [bool], bins: &Bins, grid: &Grid) -> Vec<&'a mut [bool]> {
+    let mut rest = flags;
+    (0..grid.tiles_y)
+        .map(|ty| {
+            let at = |ty: usize| bins.tile_start[ty * grid.tiles_x] as usize;
+            let (row, tail) = std::mem::take(&mut rest).split_at_mut(at(ty + 1) - at(ty));
+            rest = tail;
+            row
+        })
+        .collect()
+}
+
 /// One tile through the implementation `simd` chose.
 fn composite_tile(
     simd: Simd,
@@ -321,8 +345,7 @@ fn composite_tile(
     inputs: &TileInputs,
     list: &[u32],
     r: &TileRect,
-    feat: &mut [Real],
-    falloffs: Option<&mut Vec<Real>>,
+    out: TileOut,
 ) {
     dispatch!(
         simd,
@@ -331,8 +354,7 @@ fn composite_tile(
             inputs: &TileInputs,
             list: &[u32],
             r: &TileRect,
-            feat: &mut [Real],
-            falloffs: Option<&mut Vec<Real>>,
+            out: TileOut,
         )
     )
 }
