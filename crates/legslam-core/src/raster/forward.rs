@@ -59,6 +59,9 @@ pub(crate) struct Layer {
     pub grid: Grid,
     pub splats: Vec<Splat>,
     pub rects: Vec<Rect>,
+    /// Per Gaussian, its depth's f32 bits, the key the tiles' lists are sorted by: binning
+    /// reads these 4 bytes a Gaussian, not a splat's cache line.
+    pub depth_keys: Vec<u32>,
     pub bins: Bins,
     /// Per pixel: how many entries of its tile's list were walked (the last contributor + 1).
     pub pixel_end: Vec<u32>,
@@ -84,17 +87,20 @@ impl Layer {
         self.grid = Grid::new(width, height);
         self.splats.resize(n, Splat::default());
         self.rects.resize(n, [0; 4]);
+        self.depth_keys.resize(n, 0);
     }
 
     fn clear(&mut self) {
         *self = Layer {
             splats: std::mem::take(&mut self.splats),
             rects: std::mem::take(&mut self.rects),
+            depth_keys: std::mem::take(&mut self.depth_keys),
             falloffs: std::mem::take(&mut self.falloffs),
             ..Default::default()
         };
         self.splats.clear();
         self.rects.clear();
+        self.depth_keys.clear();
     }
 }
 
@@ -240,7 +246,7 @@ fn composite_layer(
     keep: bool,
 ) {
     let (w, h, grid) = (layer.width, layer.height, layer.grid);
-    bin(&grid, &layer.rects, &layer.splats, &mut layer.bins);
+    bin(&grid, &layer.rects, &layer.depth_keys, &mut layer.bins);
     layer.pixel_end.resize(w * h, 0);
     layer.pixel_t.resize(w * h, 0.0);
     // Rows are only ever added: a training loop alternates pyramid levels, and a row dropped

@@ -16,7 +16,7 @@ use super::forward::{Layer, Splat};
 use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{at, ceil_in_lanes, floor_end_in_lanes, V2, V3};
 use super::sh;
-use super::tiles::{lane_rect, rect_area, rect_lanes, Grid, Rect};
+use super::tiles::{depth_key, lane_rect, rect_area, rect_lanes, Grid, Rect};
 use super::{Camera, Gaussians, RasterConfig, RenderOptions};
 use crate::Real;
 
@@ -137,8 +137,9 @@ struct Projector<'a> {
 struct Outputs<'a> {
     splats: &'a mut [Splat],
     rects: &'a mut [Rect],
+    depth_keys: &'a mut [u32],
     radii: &'a mut [Real],
-    low: Option<(&'a mut [Splat], &'a mut [Rect])>,
+    low: Option<(&'a mut [Splat], &'a mut [Rect], &'a mut [u32])>,
 }
 
 /// Projects every Gaussian into the main layer's splats and rects (culled ones get an empty
@@ -170,29 +171,33 @@ pub(crate) fn project(
         .splats
         .par_chunks_mut(CHUNK)
         .zip(main.rects.par_chunks_mut(CHUNK))
+        .zip(main.depth_keys.par_chunks_mut(CHUNK))
         .zip(radii.par_chunks_mut(CHUNK))
         .enumerate();
     if coarse.is_some() {
         let low_tasks = low
             .splats
             .par_chunks_mut(CHUNK)
-            .zip(low.rects.par_chunks_mut(CHUNK));
-        tasks
-            .zip(low_tasks)
-            .for_each(|((c, ((splats, rects), radii)), (ls, lr))| {
+            .zip(low.rects.par_chunks_mut(CHUNK))
+            .zip(low.depth_keys.par_chunks_mut(CHUNK));
+        tasks.zip(low_tasks).for_each(
+            |((c, (((splats, rects), depth_keys), radii)), ((ls, lr), lk))| {
                 let out = Outputs {
                     splats,
                     rects,
+                    depth_keys,
                     radii,
-                    low: Some((ls, lr)),
+                    low: Some((ls, lr, lk)),
                 };
                 project_task(simd, &p, c * CHUNK, out);
-            });
+            },
+        );
     } else {
-        tasks.for_each(|(c, ((splats, rects), radii))| {
+        tasks.for_each(|(c, (((splats, rects), depth_keys), radii))| {
             let out = Outputs {
                 splats,
                 rects,
+                depth_keys,
                 radii,
                 low: None,
             };
@@ -549,7 +554,7 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
         let o = at + l;
         out.rects[o] = [0; 4];
         out.radii[o] = 0.0;
-        if let Some((_, lr)) = out.low.as_mut() {
+        if let Some((_, lr, _)) = out.low.as_mut() {
             lr[o] = [0; 4];
         }
         if depth_bits >> l & 1 != 0 && rect_area(&lane_rect(&bound_rects, l)) > 0 {
@@ -637,12 +642,15 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
             sigma_max: level[l],
         };
         out.rects[o] = main_rect;
+        out.depth_keys[o] = depth_key(depth[l]);
         out.radii[o] = if rect_area(&main_rect) > 0 {
             ext.x.max(ext.y)
         } else {
             0.0
         };
-        if let (Some(lr), Some(b), Some((ls, lrs))) = (low_rect, low.as_ref(), out.low.as_mut()) {
+        if let (Some(lr), Some(b), Some((ls, lrs, lks))) =
+            (low_rect, low.as_ref(), out.low.as_mut())
+        {
             ls[o] = Splat {
                 xy: V2::new(b.xy[0][l], b.xy[1][l]),
                 conic: lane3(&b.conic),
@@ -653,6 +661,7 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
                 sigma_max: level[l],
             };
             lrs[o] = lr;
+            lks[o] = depth_key(depth[l]);
         }
     }
 }
