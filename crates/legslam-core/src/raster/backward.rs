@@ -202,6 +202,15 @@ pub fn backward_into(
         .enumerate()
         .collect();
     let view = View::new(g, cam, &opts);
+    // The slots of Gaussian `i`'s pairs in layer `l` that added to a pixel (the walk wrote no
+    // others), in tile order.
+    let added_slots = |l: usize, i: usize| {
+        let (ls, stride) = (layer_scratch[l], strides[l]);
+        ls.pairs(i)
+            .iter()
+            .filter(move |&&pr| layers[l].added[pr as usize])
+            .map(move |&pr| &ls.pair_grads[pr as usize * stride..][..stride])
+    };
     let pose_parts: Vec<[Real; 6]> = chunks
         .into_par_iter()
         .map(|(c, (((((((gm, gs), gq), go), gsh), gfeat), gm2), gw))| {
@@ -215,12 +224,7 @@ pub fn backward_into(
                 // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
                 if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
                     for l in 0..layers_walked {
-                        let (ls, stride) = (layer_scratch[l], strides[l]);
-                        for &pr in ls.pairs(ahead as usize) {
-                            if layers[l].added[pr as usize] {
-                                prefetch(&ls.pair_grads[pr as usize * stride..][..stride]);
-                            }
-                        }
+                        added_slots(l, ahead as usize).for_each(prefetch);
                     }
                 }
                 let (i, li) = (i as usize, i as usize - first);
@@ -230,13 +234,7 @@ pub fn backward_into(
                 let feat_row = &mut gfeat[li * kf..][..kf];
                 feat_row.fill(0.0);
                 for (l, sg) in sums.iter_mut().enumerate().take(layers_walked) {
-                    let ls = layer_scratch[l];
-                    let stride = strides[l];
-                    for &pr in ls.pairs(i) {
-                        if !layers[l].added[pr as usize] {
-                            continue;
-                        }
-                        let s = &ls.pair_grads[pr as usize * stride..][..stride];
+                    for s in added_slots(l, i) {
                         let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
                         sg.xy += V2::new(s[slot::X], s[slot::Y]);
                         sg.conic += v3(slot::CONIC);

@@ -59,9 +59,6 @@ pub(crate) struct Layer {
     pub grid: Grid,
     pub splats: Vec<Splat>,
     pub rects: Vec<Rect>,
-    /// Per Gaussian, its depth's f32 bits, the key the tiles' lists are sorted by: binning
-    /// reads these 4 bytes a Gaussian, not a splat's cache line.
-    pub depth_keys: Vec<u32>,
     pub bins: Bins,
     /// Per pixel: how many entries of its tile's list were walked (the last contributor + 1).
     pub pixel_end: Vec<u32>,
@@ -87,20 +84,17 @@ impl Layer {
         self.grid = Grid::new(width, height);
         self.splats.resize(n, Splat::default());
         self.rects.resize(n, [0; 4]);
-        self.depth_keys.resize(n, 0);
     }
 
     fn clear(&mut self) {
         *self = Layer {
             splats: std::mem::take(&mut self.splats),
             rects: std::mem::take(&mut self.rects),
-            depth_keys: std::mem::take(&mut self.depth_keys),
             falloffs: std::mem::take(&mut self.falloffs),
             ..Default::default()
         };
         self.splats.clear();
         self.rects.clear();
-        self.depth_keys.clear();
     }
 }
 
@@ -111,6 +105,9 @@ pub(crate) struct State {
     pub main: Layer,
     /// The features alone, `feature_scale` times coarser (empty at scale 1).
     pub coarse: Layer,
+    /// Per Gaussian, its depth's f32 bits, the key both layers' tile lists are sorted by:
+    /// binning reads these 4 bytes a Gaussian, not a splat's cache line.
+    pub depth_keys: Vec<u32>,
     pub options: RenderOptions,
 }
 
@@ -169,7 +166,18 @@ pub fn render_into(
     }
     let coarse_scale = coarse.then_some(scale);
     let (main, low) = (&mut st.main, &mut st.coarse);
-    project::project(g, cam, opts, simd, coarse_scale, main, low, &mut out.radii);
+    let keys = &mut st.depth_keys;
+    project::project(
+        g,
+        cam,
+        opts,
+        simd,
+        coarse_scale,
+        main,
+        low,
+        keys,
+        &mut out.radii,
+    );
     st.options = RenderOptions { simd, ..*opts };
     let main_k = if coarse { 0 } else { k };
     // The compositing writes every pixel of each image it outputs, so a reused buffer is
@@ -200,7 +208,19 @@ pub fn render_into(
     };
     let keep = opts.for_backward;
     let cfg = &opts.config;
-    let main = || composite_layer(&mut st.main, simd, g.features, main_k, images, cfg, keep);
+    let keys = &st.depth_keys;
+    let main = || {
+        composite_layer(
+            &mut st.main,
+            keys,
+            simd,
+            g.features,
+            main_k,
+            images,
+            cfg,
+            keep,
+        )
+    };
     if coarse {
         let images = Images {
             color: &mut [],
@@ -212,7 +232,7 @@ pub fn render_into(
         // Side by side: either layer alone has too few rows of tiles to keep both threads
         // busy to its end (the features' 160x120 has eight).
         rayon::join(main, || {
-            composite_layer(&mut st.coarse, simd, g.features, k, images, cfg, keep)
+            composite_layer(&mut st.coarse, keys, simd, g.features, k, images, cfg, keep)
         });
     } else {
         main();
@@ -233,11 +253,13 @@ struct Images<'a> {
     features: &'a mut [Real],
 }
 
-/// Bins a projected layer and composites it, one row of tiles at a time (its pixels are
-/// contiguous in every image), `k` feature channels of `features` ([N, k]); with `keep`, keeps
-/// the falloffs for the backward pass.
+/// Bins a projected layer (by `depth_keys`) and composites it, one row of tiles at a time (its
+/// pixels are contiguous in every image), `k` feature channels of `features` ([N, k]); with
+/// `keep`, keeps the falloffs for the backward pass.
+#[allow(clippy::too_many_arguments)]
 fn composite_layer(
     layer: &mut Layer,
+    depth_keys: &[u32],
     simd: Simd,
     features: &[Real],
     k: usize,
@@ -246,7 +268,7 @@ fn composite_layer(
     keep: bool,
 ) {
     let (w, h, grid) = (layer.width, layer.height, layer.grid);
-    bin(&grid, &layer.rects, &layer.depth_keys, &mut layer.bins);
+    bin(&grid, &layer.rects, depth_keys, &mut layer.bins);
     layer.pixel_end.resize(w * h, 0);
     layer.pixel_t.resize(w * h, 0.0);
     // Rows are only ever added: a training loop alternates pyramid levels, and a row dropped

@@ -139,12 +139,13 @@ struct Outputs<'a> {
     rects: &'a mut [Rect],
     depth_keys: &'a mut [u32],
     radii: &'a mut [Real],
-    low: Option<(&'a mut [Splat], &'a mut [Rect], &'a mut [u32])>,
+    low: Option<(&'a mut [Splat], &'a mut [Rect])>,
 }
 
 /// Projects every Gaussian into the main layer's splats and rects (culled ones get an empty
 /// rect and keep a stale splat) and, with `coarse = Some(scale)`, into the coarse layer's as
-/// well; their main-layer screen radii into `radii`.
+/// well; their depth keys into `depth_keys` (both layers bin by them) and their main-layer
+/// screen radii into `radii`.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn project(
     g: &Gaussians,
@@ -154,6 +155,7 @@ pub(crate) fn project(
     coarse: Option<usize>,
     main: &mut Layer,
     low: &mut Layer,
+    depth_keys: &mut Vec<u32>,
     radii: &mut Vec<Real>,
 ) {
     let target = |l: &Layer| Target {
@@ -167,31 +169,31 @@ pub(crate) fn project(
         coarse: coarse.map(|s| (target(low), s as Real)),
     };
     radii.resize(g.len(), 0.0);
+    depth_keys.resize(g.len(), 0);
     let tasks = main
         .splats
         .par_chunks_mut(CHUNK)
         .zip(main.rects.par_chunks_mut(CHUNK))
-        .zip(main.depth_keys.par_chunks_mut(CHUNK))
+        .zip(depth_keys.par_chunks_mut(CHUNK))
         .zip(radii.par_chunks_mut(CHUNK))
         .enumerate();
     if coarse.is_some() {
         let low_tasks = low
             .splats
             .par_chunks_mut(CHUNK)
-            .zip(low.rects.par_chunks_mut(CHUNK))
-            .zip(low.depth_keys.par_chunks_mut(CHUNK));
-        tasks.zip(low_tasks).for_each(
-            |((c, (((splats, rects), depth_keys), radii)), ((ls, lr), lk))| {
+            .zip(low.rects.par_chunks_mut(CHUNK));
+        tasks
+            .zip(low_tasks)
+            .for_each(|((c, (((splats, rects), depth_keys), radii)), (ls, lr))| {
                 let out = Outputs {
                     splats,
                     rects,
                     depth_keys,
                     radii,
-                    low: Some((ls, lr, lk)),
+                    low: Some((ls, lr)),
                 };
                 project_task(simd, &p, c * CHUNK, out);
-            },
-        );
+            });
     } else {
         tasks.for_each(|(c, (((splats, rects), depth_keys), radii))| {
             let out = Outputs {
@@ -554,7 +556,7 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
         let o = at + l;
         out.rects[o] = [0; 4];
         out.radii[o] = 0.0;
-        if let Some((_, lr, _)) = out.low.as_mut() {
+        if let Some((_, lr)) = out.low.as_mut() {
             lr[o] = [0; 4];
         }
         if depth_bits >> l & 1 != 0 && rect_area(&lane_rect(&bound_rects, l)) > 0 {
@@ -648,9 +650,7 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
         } else {
             0.0
         };
-        if let (Some(lr), Some(b), Some((ls, lrs, lks))) =
-            (low_rect, low.as_ref(), out.low.as_mut())
-        {
+        if let (Some(lr), Some(b), Some((ls, lrs))) = (low_rect, low.as_ref(), out.low.as_mut()) {
             ls[o] = Splat {
                 xy: V2::new(b.xy[0][l], b.xy[1][l]),
                 conic: lane3(&b.conic),
@@ -661,7 +661,6 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
                 sigma_max: level[l],
             };
             lrs[o] = lr;
-            lks[o] = depth_key(depth[l]);
         }
     }
 }
