@@ -9,7 +9,9 @@
 
 use rayon::prelude::*;
 
-use super::composite::{cover_kept, for_each_group, prefetch_ahead, TileRect, TILE_LANES};
+use super::composite::{
+    cover_kept, for_each_group, prefetch_gaussian, TileRect, PREFETCH, TILE_LANES,
+};
 use super::forward::{split_chunks, Layer};
 use super::lanes::{dispatch, Lanes, Simd, LANES};
 use super::math::{V2, V3};
@@ -39,6 +41,9 @@ const SLOTS: usize = slot::COUNT;
 
 /// How many Gaussians ahead the per-Gaussian sums prefetch their pairs' gradients.
 const PAIR_PREFETCH: usize = 4;
+
+/// How many groups ahead the backward walk prefetches the kept falloffs.
+const FALLOFF_PREFETCH: usize = 16;
 
 fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> Result<(), String> {
     match grad {
@@ -470,13 +475,33 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
         .kept_falloffs
         .then(|| &st.falloffs[t / st.grid.tiles_x][st.falloff_start[t]..]);
     let mut group = 0;
+    // The walk reaches only the pairs that added, so it prefetches only theirs (a third of
+    // the features' layer's pairs add nothing).
+    let mut upcoming = list[..walked]
+        .iter()
+        .zip(added)
+        .filter_map(|(&gi, &a)| a.then_some(gi));
+    let mut prefetch_next = || {
+        if let Some(gi) = upcoming.next() {
+            prefetch_gaussian(gi, &st.splats, job.features, k);
+        }
+    };
+    (0..PREFETCH).for_each(|_| prefetch_next());
     for (j, &gi) in list[..walked].iter().enumerate() {
         // Only the pairs that added to a pixel have a gradient (the per-Gaussian sums skip
         // the others' slots, left unwritten).
         if !added[j] {
             continue;
         }
-        prefetch_ahead(list, j, &st.splats, job.features, k);
+        prefetch_next();
+        if let Some(kept) = kept {
+            // The kept falloffs are read in order, but from L3 or memory: two lines ~8 pairs on.
+            let at = (group + FALLOFF_PREFETCH) * LANES;
+            if at + 16 < kept.len() {
+                prefetch(&kept[at..at + 1]);
+                prefetch(&kept[at + 16..at + 17]);
+            }
+        }
         let s = &st.splats[gi as usize];
         let f = &job.features[gi as usize * k..][..k];
         let (slot, feat_slot) = slots[j * stride..][..stride].split_at_mut(SLOTS);
@@ -532,15 +557,23 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
             if let Some(gf) = gf {
                 let mut w = [0.0; LANES];
                 wgt.store(&mut w);
-                let mut dots = [0.0; LANES];
+                // Each lane's dot product as partial sums, reduced together: eight scalar
+                // reductions stored and loaded back as a vector stalled the walk.
+                let (mut parts, mut tails) = ([zero; LANES], [0.0; LANES]);
                 let mut bits = L::bits(ok);
                 let p0 = grp.y * st.width + r.x0 + grp.gx;
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;
-                    dots[l] = L::axpy_dot(feat_slot, w[l], &gf[(p0 + l) * k..][..k], f);
+                    (parts[l], tails[l]) =
+                        L::axpy_dot(feat_slot, w[l], &gf[(p0 + l) * k..][..k], f);
                 }
-                x_j = x_j.add(L::load(&dots));
+                let mut dots = L::load(&L::hsum8(parts));
+                // Scalar tails, stored and loaded as a vector, stall: only where there are any.
+                if k % LANES != 0 {
+                    dots = dots.add(L::load(&tails));
+                }
+                x_j = x_j.add(dots);
             }
             let prefix = L::load(&tg.prefix[lp..]);
             let prefix_next = prefix.add(wgt.mul(x_j));

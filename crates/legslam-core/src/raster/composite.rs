@@ -187,21 +187,50 @@ pub(crate) fn for_each_group(s: &Splat, r: &TileRect, mut f: impl FnMut(Group)) 
 
 /// How many Gaussians of a tile's list ahead to prefetch: the lists reach splats and features
 /// in no particular order, and a miss would stall the walk.
-const PREFETCH: usize = 8;
+pub(crate) const PREFETCH: usize = 8;
 
-/// Asks the cache for the splat (and features) of the Gaussian `PREFETCH` entries after `j`.
+/// Asks the cache for Gaussian `gi`'s splat and features.
 #[inline(always)]
-pub(crate) fn prefetch_ahead(
-    list: &[u32],
-    j: usize,
-    splats: &[Splat],
-    features: &[Real],
-    k: usize,
-) {
-    if let Some(&gi) = list.get(j + PREFETCH) {
-        let gi = gi as usize;
-        prefetch(std::slice::from_ref(&splats[gi]));
-        prefetch(&features[gi * k..][..k]);
+pub(crate) fn prefetch_gaussian(gi: u32, splats: &[Splat], features: &[Real], k: usize) {
+    let gi = gi as usize;
+    prefetch(std::slice::from_ref(&splats[gi]));
+    prefetch(&features[gi * k..][..k]);
+}
+
+/// The pixels of a tile still compositing: a bit per column, a word per row. Deep in a list
+/// most of a Gaussian's pixels have stopped, and the forward pass skips (and does not
+/// prefetch the features of) a Gaussian none of whose pixels is open.
+struct OpenPixels([u32; TILE]);
+
+impl OpenPixels {
+    fn new(r: &TileRect) -> Self {
+        let row = (1u32 << (r.x_end - r.x0)) - 1;
+        OpenPixels(std::array::from_fn(|y| {
+            if y < r.y_end - r.y0 {
+                row
+            } else {
+                0
+            }
+        }))
+    }
+
+    /// Whether a pixel of `s`'s extent in tile `r` is open (none is where the extent misses
+    /// the tile's pixels).
+    #[inline(always)]
+    fn any(&self, s: &Splat, r: &TileRect) -> bool {
+        let cols = s.columns(r.x0, r.x_end);
+        if cols.is_empty() {
+            return false;
+        }
+        let below = |c: usize| (1u32 << (c - r.x0)) - 1;
+        let mask = below(cols.end) & !below(cols.start);
+        s.rows(r.y0, r.y_end).any(|y| self.0[y - r.y0] & mask != 0)
+    }
+
+    /// Closes the lanes `bits` of the group that starts at tile-local pixel `lp`.
+    #[inline(always)]
+    fn close(&mut self, lp: usize, bits: u32) {
+        self.0[lp / TILE] &= !(bits << (lp % TILE));
     }
 }
 
@@ -312,9 +341,22 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
     let cols = r.columns();
     let (zero, one) = (L::splat(0.0), L::splat(1.0));
     let t_min = L::splat(cfg.transmittance_min);
+    let mut open = OpenPixels::new(r);
     for (j, &gi) in list.iter().enumerate() {
-        prefetch_ahead(list, j, splats, features, k);
+        // The splats two distances ahead, and one distance ahead, once its splat has come,
+        // the features of a Gaussian that can still add.
+        if let Some(&far) = list.get(j + 2 * PREFETCH) {
+            prefetch(std::slice::from_ref(&splats[far as usize]));
+        }
+        if let Some(&near) = list.get(j + PREFETCH) {
+            if k > 0 && open.any(&splats[near as usize], r) {
+                prefetch(&features[near as usize * k..][..k]);
+            }
+        }
         let s = &splats[gi as usize];
+        if !open.any(s, r) {
+            continue;
+        }
         let f = &features[gi as usize * k..][..k];
         // Not `array::map`, which is not always inlined into the AVX2 kernel (see `walk_tile`).
         let color = [
@@ -347,6 +389,7 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             let add = L::and_not(live, stop);
             let stopped = L::bits(stop);
             if stopped != 0 {
+                open.close(lp, stopped);
                 one.store_where(stop, done, &mut acc.done[lp..]);
                 acc.active -= stopped.count_ones() as usize;
             }

@@ -229,9 +229,11 @@ pub(crate) trait Lanes: Copy {
     /// The dot product of two equally long slices: eight partial sums, then `hsum`, then the
     /// tail in order.
     fn dot(a: &[Real], b: &[Real]) -> Real;
-    /// `axpy(out, w, g)` and `dot(g, f)` in one pass over `g` (the same bits as the two).
+    /// `axpy(out, w, g)` and `dot(g, f)` in one pass over `g` (the same bits as the two), the
+    /// dot product left as its eight partial sums and its tail: `hsum` of the first plus the
+    /// second (so that a caller can reduce eight of them in one [`Lanes::hsum8`]).
     #[inline(always)]
-    fn axpy_dot(out: &mut [Real], w: Real, g: &[Real], f: &[Real]) -> Real {
+    fn axpy_dot(out: &mut [Real], w: Real, g: &[Real], f: &[Real]) -> (Self, Real) {
         let n = out.len().min(g.len()).min(f.len());
         let full = n - n % LANES;
         let (wv, mut acc) = (Self::splat(w), Self::splat(0.0));
@@ -249,7 +251,7 @@ pub(crate) trait Lanes: Copy {
             *o += w * g;
             tail += g * f;
         }
-        acc.hsum() + tail
+        (acc, tail)
     }
 }
 
@@ -1368,7 +1370,8 @@ mod tests {
             // The fused pass against the two it stands for, each on the portable lanes.
             let vf: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
             let mut of = vb.clone();
-            let d = L::axpy_dot(&mut of, xa[1], &va, &vf);
+            let (parts, tail) = L::axpy_dot(&mut of, xa[1], &va, &vf);
+            let d = parts.hsum() + tail;
             let mut op = vb.clone();
             Portable::axpy(&mut op, xa[1], &va);
             assert_eq!(bits(&of), bits(&op), "axpy_dot's axpy");
