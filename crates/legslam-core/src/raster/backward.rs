@@ -233,28 +233,15 @@ pub fn backward_into(
                     }
                 }
                 let (i, li) = (i as usize, i as usize - first);
-                // Each layer's pairs, in tile order, so that the sums are deterministic.
-                let mut sums = [ScreenGrads::default(); 2];
-                let mut weight = 0.0;
                 let feat_row = &mut gfeat[li * kf..][..kf];
                 feat_row.fill(0.0);
-                for (l, sg) in sums.iter_mut().enumerate().take(layers_walked) {
-                    for s in added_slots(l, i) {
-                        let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
-                        sg.xy += V2::new(s[slot::X], s[slot::Y]);
-                        sg.conic += v3(slot::CONIC);
-                        sg.opacity += s[slot::OPACITY];
-                        sg.color += v3(slot::COLOR);
-                        sg.depth += s[slot::DEPTH];
-                        if l == 0 {
-                            weight += s[slot::WEIGHT];
-                        }
-                        for (o, v) in feat_row.iter_mut().zip(&s[SLOTS..]) {
-                            *o += v;
-                        }
-                    }
-                }
-                let [mut sg, low] = sums;
+                // Each layer's pairs, in tile order, so that the sums are deterministic.
+                let (mut sg, weight) = sum_slots(added_slots(0, i), feat_row);
+                let low = if coarse {
+                    sum_slots(added_slots(1, i), feat_row).0
+                } else {
+                    ScreenGrads::default()
+                };
                 // Densification reads the main layer's screen-space gradient alone.
                 gm2[2 * li] = sg.xy.x;
                 gm2[2 * li + 1] = sg.xy.y;
@@ -288,6 +275,31 @@ pub fn backward_into(
     }
     out.rows = rows;
     Ok(())
+}
+
+/// The sums of a Gaussian's pair `slots` in one layer: the screen-space gradients and the
+/// blending weights, returned (in registers: summed into an array in memory, each Gaussian's
+/// sums were stored piecewise and loaded whole, a stall), and the features' gradients added
+/// to `feat_row`.
+#[inline(always)]
+fn sum_slots<'a>(
+    slots: impl Iterator<Item = &'a [Real]>,
+    feat_row: &mut [Real],
+) -> (ScreenGrads, Real) {
+    let (mut sg, mut weight) = (ScreenGrads::default(), 0.0);
+    for s in slots {
+        let v3 = |i: usize| V3::new(s[i], s[i + 1], s[i + 2]);
+        sg.xy += V2::new(s[slot::X], s[slot::Y]);
+        sg.conic += v3(slot::CONIC);
+        sg.opacity += s[slot::OPACITY];
+        sg.color += v3(slot::COLOR);
+        sg.depth += s[slot::DEPTH];
+        weight += s[slot::WEIGHT];
+        for (o, v) in feat_row.iter_mut().zip(&s[SLOTS..]) {
+            *o += v;
+        }
+    }
+    (sg, weight)
 }
 
 /// Walks every tile of `job`'s layer into per-pair gradients (each tile owns a contiguous
