@@ -5,16 +5,30 @@
 #[inline(always)]
 pub(crate) fn prefetch<T>(v: &[T]) {
     #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let start = v.as_ptr() as usize;
-        let end = start + std::mem::size_of_val(v);
-        // From the line that holds the first byte to the one that holds the last.
-        for line in (start & !63..end).step_by(64) {
-            // SAFETY: prefetching never faults, whatever the address.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(line as *const i8) };
-        }
-    }
+    lines::<{ std::arch::x86_64::_MM_HINT_T0 }, T>(v);
     #[cfg(not(target_arch = "x86_64"))]
     let _ = v;
+}
+
+/// [`prefetch`] into the second-level cache only: for loops that ask for more lines at once
+/// than the first level can have in flight.
+#[inline(always)]
+pub(crate) fn prefetch_l2<T>(v: &[T]) {
+    #[cfg(target_arch = "x86_64")]
+    lines::<{ std::arch::x86_64::_MM_HINT_T1 }, T>(v);
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = v;
+}
+
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn lines<const HINT: i32, T>(v: &[T]) {
+    use std::arch::x86_64::_mm_prefetch;
+    let start = v.as_ptr() as usize;
+    let end = start + std::mem::size_of_val(v);
+    // From the line that holds the first byte to the one that holds the last.
+    for line in (start & !63..end).step_by(64) {
+        // SAFETY: prefetching never faults, whatever the address.
+        unsafe { _mm_prefetch::<HINT>(line as *const i8) };
+    }
 }

@@ -20,7 +20,7 @@ use super::project_backward::{backward_task, conic_to_cov_grad, BlockGrads, Scre
 use super::tiles::rect_area;
 use super::{Camera, Gaussians, Gradients, ImageGrads, RasterConfig, Rendered, TILE};
 use crate::optim::rows_in;
-use crate::prefetch::prefetch;
+use crate::prefetch::{prefetch, prefetch_l2};
 use crate::Real;
 
 /// The screen-space gradient slots of a (tile, Gaussian) pair, ahead of its K feature slots.
@@ -229,7 +229,7 @@ pub fn backward_into(
                 // A Gaussian's pairs lie anywhere in the per-pair buffers (in tile order).
                 if let Some(&ahead) = mine.get(at + PAIR_PREFETCH) {
                     for l in 0..layers_walked {
-                        added_slots(l, ahead as usize).for_each(prefetch);
+                        added_slots(l, ahead as usize).for_each(prefetch_l2);
                     }
                 }
                 let (i, li) = (i as usize, i as usize - first);
