@@ -517,7 +517,9 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
         let s = &st.splats[gi as usize];
         let f = &job.features[gi as usize * k..][..k];
         let (slot, feat_slot) = slots[j * stride..][..stride].split_at_mut(SLOTS);
-        feat_slot.fill(0.0);
+        // The first lane to reach the features' slot writes it rather than adds to it: no
+        // zeroing pass (a call to memset per pair).
+        let mut fresh = true;
         let color = [
             L::splat(s.color.x),
             L::splat(s.color.y),
@@ -577,8 +579,13 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
                 while bits != 0 {
                     let l = bits.trailing_zeros() as usize;
                     bits &= bits - 1;
-                    (parts[l], tails[l]) =
-                        L::axpy_dot(feat_slot, w[l], &gf[(p0 + l) * k..][..k], f);
+                    let g = &gf[(p0 + l) * k..][..k];
+                    (parts[l], tails[l]) = if fresh {
+                        fresh = false;
+                        L::axpy_dot::<true>(feat_slot, w[l], g, f)
+                    } else {
+                        L::axpy_dot::<false>(feat_slot, w[l], g, f)
+                    };
                 }
                 let mut dots = L::load(&L::hsum8(parts));
                 // Scalar tails, stored and loaded as a vector, stall: only where there are any.
@@ -624,6 +631,10 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
             next.store_where(ok, t, &mut tg.trans[lp..]);
             prefix_next.store_where(ok, prefix, &mut tg.prefix[lp..]);
         });
+        // A pair without a features' gradient (none was given) has zeros there.
+        if fresh && k > 0 {
+            feat_slot.fill(0.0);
+        }
         // Eight of the pair's sums in one transposition, then the rest.
         let (first, rest) = acc.split_at(8);
         slot[..8].copy_from_slice(&L::hsum8(first.try_into().unwrap()));

@@ -231,9 +231,15 @@ pub(crate) trait Lanes: Copy {
     fn dot(a: &[Real], b: &[Real]) -> Real;
     /// `axpy(out, w, g)` and `dot(g, f)` in one pass over `g` (the same bits as the two), the
     /// dot product left as its eight partial sums and its tail: `hsum` of the first plus the
-    /// second (so that a caller can reduce eight of them in one [`Lanes::hsum8`]).
+    /// second (so that a caller can reduce eight of them in one [`Lanes::hsum8`]). `FRESH`:
+    /// `out` is taken to hold zeros, and is not read (the same bits as zeroing it first).
     #[inline(always)]
-    fn axpy_dot(out: &mut [Real], w: Real, g: &[Real], f: &[Real]) -> (Self, Real) {
+    fn axpy_dot<const FRESH: bool>(
+        out: &mut [Real],
+        w: Real,
+        g: &[Real],
+        f: &[Real],
+    ) -> (Self, Real) {
         let n = out.len().min(g.len()).min(f.len());
         let full = n - n % LANES;
         let (wv, mut acc) = (Self::splat(w), Self::splat(0.0));
@@ -243,12 +249,17 @@ pub(crate) trait Lanes: Copy {
             .zip(f[..full].chunks_exact(LANES))
         {
             let gv = Self::load(g);
-            Self::load(o).add(wv.mul(gv)).store(o);
+            let old = if FRESH {
+                Self::splat(0.0)
+            } else {
+                Self::load(o)
+            };
+            old.add(wv.mul(gv)).store(o);
             acc = acc.add(gv.mul(Self::load(f)));
         }
         let mut tail = 0.0;
         for ((o, g), f) in out[full..n].iter_mut().zip(&g[full..n]).zip(&f[full..n]) {
-            *o += w * g;
+            *o = if FRESH { 0.0 } else { *o } + w * g;
             tail += g * f;
         }
         (acc, tail)
@@ -1370,7 +1381,7 @@ mod tests {
             // The fused pass against the two it stands for, each on the portable lanes.
             let vf: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
             let mut of = vb.clone();
-            let (parts, tail) = L::axpy_dot(&mut of, xa[1], &va, &vf);
+            let (parts, tail) = L::axpy_dot::<false>(&mut of, xa[1], &va, &vf);
             let d = parts.hsum() + tail;
             let mut op = vb.clone();
             Portable::axpy(&mut op, xa[1], &va);
@@ -1380,6 +1391,13 @@ mod tests {
                 Portable::dot(&va, &vf).to_bits(),
                 "axpy_dot's dot"
             );
+            // Into a slice of garbage taken as zeros, against zeros.
+            let mut of = vf.clone();
+            let (fresh_parts, fresh_tail) = L::axpy_dot::<true>(&mut of, xa[1], &va, &vf);
+            let mut op = vec![0.0; n];
+            Portable::axpy(&mut op, xa[1], &va);
+            assert_eq!(bits(&of), bits(&op), "axpy_dot's fresh axpy");
+            assert_eq!((fresh_parts.hsum() + fresh_tail).to_bits(), d.to_bits());
         }
     }
 
