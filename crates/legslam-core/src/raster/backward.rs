@@ -44,6 +44,8 @@ const PAIR_PREFETCH: usize = 4;
 
 /// How many groups ahead the backward walk prefetches the kept falloffs.
 const FALLOFF_PREFETCH: usize = 16;
+/// Values in a cache line.
+const LINE_VALUES: usize = 64 / std::mem::size_of::<Real>();
 
 fn check_grad(name: &str, grad: Option<&[Real]>, rendered: bool, len: usize) -> Result<(), String> {
     match grad {
@@ -509,9 +511,8 @@ fn walk<L: Lanes, const COLOUR: bool, const ALPHA: bool>(
         if let Some(kept) = kept {
             // The kept falloffs are read in order, but from L3 or memory: two lines ~8 pairs on.
             let at = (group + FALLOFF_PREFETCH) * LANES;
-            if at + 16 < kept.len() {
-                prefetch(&kept[at..at + 1]);
-                prefetch(&kept[at + 16..at + 17]);
+            if let Some(ahead) = kept.get(at..=at + LINE_VALUES) {
+                prefetch(ahead);
             }
         }
         let s = &st.splats[gi as usize];
