@@ -119,8 +119,8 @@ fn bin_tasks() -> usize {
 }
 
 /// Bins Gaussians by tile into `bins` and sorts each tile by depth (`depth_keys`, see
-/// [`depth_key`]), ties by index. The keys are
-/// unique, so the result does not depend on the order the parallel fill happens to run in.
+/// [`depth_key`]), ties by index. The keys are unique, so the result does not depend on the
+/// order the parallel fill happens to run in.
 ///
 /// Each task counts its own Gaussians per tile and fills its own part of every tile's range,
 /// so that no two threads contend for a counter (with shared atomic counters and fresh
