@@ -285,7 +285,7 @@ pub(crate) struct TileInputs<'a> {
 }
 
 /// What compositing a tile writes besides its accumulators.
-pub(crate) struct TileOut<'a> {
+pub(crate) struct TileOut<'a, 'b> {
     /// The rows of the layer's feature image from the tile's first, [rows, width, k] (zero
     /// where the tile lies).
     pub feat: &'a mut [Real],
@@ -294,7 +294,33 @@ pub(crate) struct TileOut<'a> {
     /// Where each group's exponential is appended (zero in the lanes not covered), for
     /// [`cover_kept`]: of the Gaussians that added to a pixel only, as the backward pass walks
     /// no others.
-    pub falloffs: Option<&'a mut Vec<Real>>,
+    pub falloffs: Option<&'a mut KeptFalloffs<'b>>,
+}
+
+/// A row of tiles' kept falloffs, written at a cursor into a buffer that only grows: pushed
+/// onto a vector instead, each group's store waited on the vector's length, stored and
+/// loaded back (7% of the forward's samples).
+pub(crate) struct KeptFalloffs<'a> {
+    buf: &'a mut Vec<Real>,
+    /// Where the next group goes: the row's falloffs are `buf[..at]`.
+    pub at: usize,
+}
+
+impl<'a> KeptFalloffs<'a> {
+    /// A row's falloffs from the start of `buf` (whatever it holds beyond them is stale).
+    pub fn new(buf: &'a mut Vec<Real>) -> Self {
+        KeptFalloffs { buf, at: 0 }
+    }
+
+    /// The next `len` values, for the caller to fill before it advances `at` over them.
+    #[inline(always)]
+    fn room(&mut self, len: usize) -> &mut [Real] {
+        let end = self.at + len;
+        if self.buf.len() < end {
+            self.buf.resize(end.max(2 * self.buf.len()), 0.0);
+        }
+        &mut self.buf[self.at..end]
+    }
 }
 
 /// Composites the tile's list `list` (front to back) into `acc` and `out`: Gaussian-major, so
@@ -365,7 +391,10 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             L::splat(s.color.z),
         ];
         let depth = L::splat(s.depth);
-        let kept_from = falloffs.as_ref().map_or(0, |kept| kept.len());
+        // Room for every group of the pair, at most two a row.
+        let groups = s.rows(r.y0, r.y_end).len() * s.columns(r.x0, r.x_end).len().div_ceil(LANES);
+        let mut room = falloffs.as_mut().map(|kept| kept.room(groups * LANES));
+        let mut used = 0;
         let mut any = false;
         for_each_group(s, r, |g| {
             let lp = g.lp;
@@ -374,10 +403,9 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             // list ended before this Gaussian).
             let done = L::load(&acc.done[lp..]);
             let c = g.cover::<L>(s, &cols, done.le(zero), cfg);
-            if let Some(kept) = falloffs.as_mut() {
-                let mut group = [0.0; LANES];
-                L::select(c.ok, c.falloff, zero).store(&mut group);
-                kept.extend_from_slice(&group);
+            if let Some(room) = room.as_deref_mut() {
+                L::select(c.ok, c.falloff, zero).store(&mut room[used..]);
+                used += LANES;
             }
             let live = c.ok;
             if L::bits(live) == 0 {
@@ -418,9 +446,9 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             }
         });
         added[j] = any;
-        if !any {
+        if any {
             if let Some(kept) = falloffs.as_mut() {
-                kept.truncate(kept_from);
+                kept.at += used;
             }
         }
         if acc.active == 0 {

@@ -4,7 +4,7 @@
 
 use rayon::prelude::*;
 
-use super::composite::{composite, TileAcc, TileInputs, TileOut, TileRect};
+use super::composite::{composite, KeptFalloffs, TileAcc, TileInputs, TileOut, TileRect};
 use super::lanes::{dispatch, Simd};
 use super::math::{V2, V3};
 use super::project;
@@ -67,7 +67,7 @@ pub(crate) struct Layer {
     /// Per row of tiles, the falloff exp(-sigma) of every group of eight pixels its tiles
     /// walked, in walking order (zero where a lane was not covered), when the render was made
     /// `for_backward` (empty otherwise): the backward pass reads them instead of evaluating the
-    /// exponential again.
+    /// exponential again. Past the row's last group, stale values of an earlier render.
     pub falloffs: Vec<Vec<Real>>,
     /// Per tile, where its groups start in its row's `falloffs`.
     pub falloff_start: Vec<usize>,
@@ -306,14 +306,14 @@ fn composite_layer(
     outs.into_par_iter().for_each(
         |(ty, ((((((((col, dep), alp), fea), end), tr), fo), starts), added))| {
             let mut acc = TileAcc::new();
-            fo.clear();
+            let mut kept = KeptFalloffs::new(fo);
             let row_start = bins.tile_start[ty * grid.tiles_x] as usize;
             for (tx, start) in starts.iter_mut().enumerate() {
                 let t = ty * grid.tiles_x + tx;
                 let r = TileRect::new(&grid, t, w, h);
                 let list = bins.list(t);
                 acc.reset((r.x_end - r.x0) * (r.y_end - r.y0));
-                *start = fo.len();
+                *start = kept.at;
                 // The features accumulate in the image itself (a tile's own buffer cost a
                 // 64 kB copy a tile at K = 64).
                 if k > 0 {
@@ -325,7 +325,7 @@ fn composite_layer(
                     let out = TileOut {
                         feat: &mut *fea,
                         added: &mut added[bins.tile_start[t] as usize - row_start..][..list.len()],
-                        falloffs: keep.then_some(&mut *fo),
+                        falloffs: keep.then_some(&mut kept),
                     };
                     composite_tile(simd, &mut acc, &inputs, list, &r, out);
                 }
