@@ -392,8 +392,10 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
         ];
         let depth = L::splat(s.depth);
         // Room for every group of the pair, at most two a row.
-        let groups = s.rows(r.y0, r.y_end).len() * s.columns(r.x0, r.x_end).len().div_ceil(LANES);
-        let mut room = falloffs.as_mut().map(|kept| kept.room(groups * LANES));
+        let mut room = falloffs.as_mut().map(|kept| {
+            let rows = s.rows(r.y0, r.y_end).len();
+            kept.room(rows * s.columns(r.x0, r.x_end).len().div_ceil(LANES) * LANES)
+        });
         let mut used = 0;
         let mut any = false;
         for_each_group(s, r, |g| {
