@@ -291,7 +291,7 @@ pub(crate) struct TileOut<'a, 'b> {
     pub feat: &'a mut [Real],
     /// Per entry of the tile's list: whether the Gaussian added to one of its pixels.
     pub added: &'a mut [bool],
-    /// Where each group's exponential is appended (zero in the lanes not covered), for
+    /// Where each group's exponential is kept (zero in the lanes not covered), for
     /// [`cover_kept`]: of the Gaussians that added to a pixel only, as the backward pass walks
     /// no others.
     pub falloffs: Option<&'a mut KeptFalloffs<'b>>,
@@ -316,8 +316,10 @@ impl<'a> KeptFalloffs<'a> {
     #[inline(always)]
     fn room(&mut self, len: usize) -> &mut [Real] {
         let end = self.at + len;
+        // Grown only as far as used, so that no more memory is touched than the falloffs
+        // take (the capacity still grows geometrically).
         if self.buf.len() < end {
-            self.buf.resize(end.max(2 * self.buf.len()), 0.0);
+            self.buf.resize(end, 0.0);
         }
         &mut self.buf[self.at..end]
     }
