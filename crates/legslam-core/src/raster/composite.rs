@@ -185,6 +185,12 @@ pub(crate) fn for_each_group(s: &Splat, r: &TileRect, mut f: impl FnMut(Group)) 
     }
 }
 
+/// How many groups [`for_each_group`] calls for Gaussian `s` in tile `r` (at most two a row).
+#[inline(always)]
+fn group_count(s: &Splat, r: &TileRect) -> usize {
+    s.rows(r.y0, r.y_end).len() * s.columns(r.x0, r.x_end).len().div_ceil(LANES)
+}
+
 /// How many Gaussians of a tile's list ahead to prefetch: the lists reach splats and features
 /// in no particular order, and a miss would stall the walk.
 pub(crate) const PREFETCH: usize = 8;
@@ -393,11 +399,10 @@ fn composite_with<L: Lanes, const COLOUR: bool>(
             L::splat(s.color.z),
         ];
         let depth = L::splat(s.depth);
-        // Room for every group of the pair, at most two a row.
-        let mut room = falloffs.as_mut().map(|kept| {
-            let rows = s.rows(r.y0, r.y_end).len();
-            kept.room(rows * s.columns(r.x0, r.x_end).len().div_ceil(LANES) * LANES)
-        });
+        // Room for every group of the pair.
+        let mut room = falloffs
+            .as_mut()
+            .map(|kept| kept.room(group_count(s, r) * LANES));
         let mut used = 0;
         let mut any = false;
         for_each_group(s, r, |g| {
