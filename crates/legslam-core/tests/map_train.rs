@@ -60,6 +60,29 @@ fn training_lowers_the_loss_and_refinement_keeps_rows_in_step() {
     m.train(5).unwrap();
 }
 
+/// A keyframe trains `uses_per_level` times at each level from the coarsest down, then stays at
+/// `finest_level` (what the mapper bench waits for before it times iterations).
+#[test]
+fn each_keyframe_trains_coarse_to_fine() {
+    let cfg = MapperConfig {
+        levels: 3,
+        finest_level: 1,
+        uses_per_level: 2,
+        grow_level: 1,
+        ..Default::default()
+    };
+    let mut m = Mapper::new(cfg).unwrap();
+    let (rgb, depth, k) = wall(64, 48);
+    m.add_keyframe(rgb, depth, k, Pose::identity()).unwrap();
+    let mut levels = Vec::new();
+    for _ in 0..6 {
+        levels.push(m.training_level(0));
+        m.train(1).unwrap();
+    }
+    assert_eq!(levels, [2, 2, 1, 1, 1, 1]);
+    assert_eq!(m.keyframes[0].uses, 6);
+}
+
 #[test]
 fn mapper_options_by_name_reach_their_fields_and_keep_their_kinds() {
     use legslam_core::options::{Options, Value};

@@ -400,6 +400,18 @@ impl Mapper {
         self.queue.pop().unwrap()
     }
 
+    /// The pyramid level keyframe `ki`'s next iteration trains at: its first `uses_per_level`
+    /// uses at the coarsest, the next at the level below, down to `finest_level` (or the
+    /// finest it kept).
+    pub fn training_level(&self, ki: usize) -> usize {
+        let (c, kf) = (&self.config, &self.keyframes[ki]);
+        let coarsest = kf.levels.len() - 1;
+        coarsest
+            .saturating_sub(kf.uses / c.uses_per_level.max(1))
+            .max(c.finest_level.min(coarsest))
+            .max(kf.finest_kept())
+    }
+
     /// Runs `iterations` mapping iterations over the configured window of keyframes.
     pub fn train(&mut self, iterations: usize) -> Result<TrainReport, String> {
         self.train_window(iterations, self.config.window)
@@ -425,13 +437,10 @@ impl Mapper {
 
     fn iterate(&mut self, report: &mut TrainReport, window: usize) -> Result<(), String> {
         let ki = self.next_keyframe(window);
+        let li = self.training_level(ki);
         let c = &self.config;
         let kf = &mut self.keyframes[ki];
         let coarsest = kf.levels.len() - 1;
-        let li = coarsest
-            .saturating_sub(kf.uses / c.uses_per_level.max(1))
-            .max(c.finest_level.min(coarsest))
-            .max(kf.finest_kept());
         // Features are rendered `feature_level_offset` levels coarser, from the colour pass's
         // projection: their target is an upsampled patch grid, and K channels cost K times a
         // colour channel.
