@@ -7,6 +7,7 @@ mod common;
 
 use common::{hard_scene, random_scene, Rng, Scene};
 use legslam_core::raster::{backward, render, Gradients, ImageGrads, RenderOptions};
+use legslam_core::Real;
 use nalgebra::{Matrix4, Rotation3, Vector3};
 
 const H: f64 = 1e-6;
@@ -34,8 +35,9 @@ const ALL: Which = Which {
     features: true,
 };
 
-/// Features are rendered `scale` times coarser than the other images.
-fn weights(s: &Scene, which: Which, seed: u64, scale: usize) -> Weights {
+/// Loss weights for each output; the features' image is laid out as `at` says.
+fn weights(s: &Scene, which: Which, seed: u64, at: Sampling) -> Weights {
+    let scale = at.scale;
     let mut rng = Rng::new(seed);
     let npix = s.intr.width * s.intr.height;
     let feature_pix = (s.intr.width / scale) * (s.intr.height / scale);
@@ -48,8 +50,8 @@ fn weights(s: &Scene, which: Which, seed: u64, scale: usize) -> Weights {
     }
 }
 
-fn loss(s: &Scene, deg: usize, scale: usize, w: &Weights) -> f64 {
-    let r = render(&s.gaussians(), &s.camera(), &opts(deg, scale)).unwrap();
+fn loss(s: &Scene, deg: usize, at: Sampling, w: &Weights) -> f64 {
+    let r = render(&s.gaussians(), &s.camera(), &opts(deg, at)).unwrap();
     let dot = |a: &[f64], b: &Option<Vec<f64>>| {
         b.as_ref()
             .map_or(0.0, |b| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>())
@@ -60,18 +62,33 @@ fn loss(s: &Scene, deg: usize, scale: usize, w: &Weights) -> f64 {
         + dot(&r.features, &w.features)
 }
 
-fn opts(deg: usize, feature_scale: usize) -> RenderOptions {
+/// Where the features' pixels lie: `scale` times coarser, each the render of its block
+/// (`origin` None) or the main layer's image at the point (s i + origin[0], s j + origin[1]).
+#[derive(Clone, Copy)]
+struct Sampling {
+    scale: usize,
+    origin: Option<[Real; 2]>,
+}
+
+/// Features at every pixel of the main layer.
+const FULL: Sampling = Sampling {
+    scale: 1,
+    origin: None,
+};
+
+fn opts(deg: usize, at: Sampling) -> RenderOptions {
     // As a training loop renders (raster_kept.rs: the same gradients without).
     RenderOptions {
         sh_degree: deg,
-        feature_scale,
+        feature_scale: at.scale,
+        feature_origin: at.origin,
         for_backward: true,
         ..Default::default()
     }
 }
 
-fn analytic(s: &Scene, deg: usize, scale: usize, w: &Weights) -> Gradients {
-    let r = render(&s.gaussians(), &s.camera(), &opts(deg, scale)).unwrap();
+fn analytic(s: &Scene, deg: usize, at: Sampling, w: &Weights) -> Gradients {
+    let r = render(&s.gaussians(), &s.camera(), &opts(deg, at)).unwrap();
     let grads = ImageGrads {
         color: w.color.as_deref(),
         depth: w.depth.as_deref(),
@@ -91,8 +108,8 @@ fn assert_close(what: &str, a: f64, fd: f64) {
 
 /// Checks every entry of every parameter group and the pose; returns the largest gradient
 /// magnitude seen per group, so that callers can assert that a group is reached at all.
-fn check_all(s: &Scene, deg: usize, scale: usize, w: &Weights) -> [f64; 7] {
-    let g = analytic(s, deg, scale, w);
+fn check_all(s: &Scene, deg: usize, at: Sampling, w: &Weights) -> [f64; 7] {
+    let g = analytic(s, deg, at, w);
     let mut largest = [0.0f64; 7];
     type Field = fn(&mut Scene) -> &mut Vec<f64>;
     let groups: [(&str, Field, &Vec<f64>); 6] = [
@@ -113,17 +130,17 @@ fn check_all(s: &Scene, deg: usize, scale: usize, w: &Weights) -> [f64; 7] {
         for j in 0..grad.len() {
             let v = field(&mut p)[j];
             field(&mut p)[j] = v + H;
-            let lp = loss(&p, deg, scale, w);
+            let lp = loss(&p, deg, at, w);
             field(&mut p)[j] = v - H;
-            let lm = loss(&p, deg, scale, w);
+            let lm = loss(&p, deg, at, w);
             field(&mut p)[j] = v;
             assert_close(&format!("{name}[{j}]"), grad[j], (lp - lm) / (2.0 * H));
             largest[gi] = largest[gi].max(grad[j].abs());
         }
     }
     for a in 0..6 {
-        let fd = (loss(&perturb_pose(s, a, H), deg, scale, w)
-            - loss(&perturb_pose(s, a, -H), deg, scale, w))
+        let fd = (loss(&perturb_pose(s, a, H), deg, at, w)
+            - loss(&perturb_pose(s, a, -H), deg, at, w))
             / (2.0 * H);
         assert_close(&format!("pose[{a}]"), g.pose[a], fd);
         largest[6] = largest[6].max(g.pose[a].abs());
@@ -151,7 +168,7 @@ fn gradients_on_random_scenes_all_outputs_all_sh_degrees() {
     for seed in 0..4u64 {
         let deg = seed as usize;
         let s = random_scene(100 + seed, 20, 36, 28, deg, 4);
-        let largest = check_all(&s, deg, 1, &weights(&s, ALL, seed, 1));
+        let largest = check_all(&s, deg, FULL, &weights(&s, ALL, seed, FULL));
         assert!(
             largest.iter().all(|v| *v > 0.0),
             "every group gets a gradient"
@@ -163,7 +180,7 @@ fn gradients_on_random_scenes_all_outputs_all_sh_degrees() {
 fn gradients_on_hard_scenes() {
     for seed in 0..3u64 {
         let s = hard_scene(200 + seed, 40, 30, 2, 3);
-        check_all(&s, 2, 1, &weights(&s, ALL, seed, 1));
+        check_all(&s, 2, FULL, &weights(&s, ALL, seed, FULL));
     }
 }
 
@@ -208,7 +225,7 @@ fn each_output_alone_reaches_geometry_and_opacity() {
     ];
     let s = random_scene(300, 12, 32, 24, 1, 3);
     for (name, which) in cases {
-        let largest = check_all(&s, 1, 1, &weights(&s, which, 7, 1));
+        let largest = check_all(&s, 1, FULL, &weights(&s, which, 7, FULL));
         for (gi, group) in ["means", "log_scales", "quats", "opacity_logits"]
             .iter()
             .enumerate()
@@ -219,8 +236,9 @@ fn each_output_alone_reaches_geometry_and_opacity() {
     }
 }
 
-/// Features rendered 2 and 3 times coarser (odd sizes, partial tiles) from the same projection:
-/// their gradient reaches every group through the coarse layer, alone and with the others.
+/// Features rendered 2 and 3 times coarser (odd sizes, partial tiles) from the same projection,
+/// as each block's render or point-sampled: their gradient reaches every group through the
+/// coarse layer, alone and with the others.
 #[test]
 fn gradients_with_features_in_a_coarser_layer() {
     let features_only = Which {
@@ -229,10 +247,16 @@ fn gradients_with_features_in_a_coarser_layer() {
         alpha: false,
         features: true,
     };
-    for (seed, scale) in [(400u64, 2), (401, 3)] {
+    for (seed, scale, origin) in [
+        (400u64, 2, None),
+        (401, 3, None),
+        (402, 2, Some([0.25, 1.0])),
+        (403, 3, Some([1.6, -0.4])),
+    ] {
+        let at = Sampling { scale, origin };
         let s = random_scene(seed, 20, 37, 29, 1, 3);
-        check_all(&s, 1, scale, &weights(&s, ALL, seed, scale));
-        let largest = check_all(&s, 1, scale, &weights(&s, features_only, seed, scale));
+        check_all(&s, 1, at, &weights(&s, ALL, seed, at));
+        let largest = check_all(&s, 1, at, &weights(&s, features_only, seed, at));
         for (gi, group) in ["means", "log_scales", "quats", "opacity_logits"]
             .iter()
             .enumerate()

@@ -2,7 +2,8 @@
 
 mod common;
 
-use common::{hard_scene, random_scene, reference_render, Scene};
+use common::{empty_scene, hard_scene, random_scene, reference_render, Rng, Scene};
+use legslam_core::camera::Intrinsics;
 use legslam_core::raster::{backward, render, ImageGrads, RasterConfig, RenderOptions};
 use legslam_core::Real;
 
@@ -163,6 +164,110 @@ fn render_is_deterministic() {
     let b = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
     assert_eq!(a.color, b.color);
     assert_eq!(a.features, b.features);
+}
+
+/// A random scene whose Gaussians' centres all lie inside the image: the projection's Jacobian
+/// clamps none of them, which a camera with another principal point would clamp elsewhere.
+fn scene_in_view(seed: u64, n: usize, width: usize, height: usize, k: usize) -> Scene {
+    let mut rng = Rng::new(seed);
+    let mut scene = empty_scene(&mut rng, width, height, 1, k);
+    let i = scene.intr;
+    let span = |c: f64, f: f64, size: usize| (-(c + 0.5) / f, (size as f64 - 0.5 - c) / f);
+    let ((x0, x1), (y0, y1)) = (span(i.cx, i.fx, width), span(i.cy, i.fy, height));
+    for _ in 0..n {
+        let z = rng.uniform(1.0, 4.0);
+        let ls = [(); 3].map(|_| rng.uniform(-3.0, -1.5));
+        let pc = [z * rng.uniform(x0, x1), z * rng.uniform(y0, y1), z];
+        let logit = rng.uniform(-1.0, 3.0);
+        scene.push(&mut rng, pc, ls, logit);
+    }
+    scene
+}
+
+/// Features point-sampled at a coarser scale (`feature_origin` o) are the main layer's image at
+/// the points (s i + o[0], s j + o[1]): the plain reference of a camera whose pixels lie there
+/// (focal lengths divided by s, principal point moved to o and divided by s, the dilation by
+/// s^2, so that each footprint is the main layer's), stopping a pixel at the features' own
+/// cut-off. They differ from the render of each block.
+#[test]
+fn features_point_sampled_at_a_coarser_scale_match_the_points_reference() {
+    for (seed, scale, origin) in [
+        (31u64, 2usize, [0.0, 1.0]),
+        (32, 4, [1.75, -0.5]),
+        (33, 3, [2.4, 0.3]),
+    ] {
+        let scene = scene_in_view(seed, 300, 72, 48, 6);
+        let cfg = RasterConfig::default();
+        let opts = RenderOptions {
+            sh_degree: 1,
+            feature_scale: scale,
+            feature_origin: Some(origin),
+            config: cfg,
+            ..Default::default()
+        };
+        let fast = render(&scene.gaussians(), &scene.camera(), &opts).unwrap();
+        let s = scale as f64;
+        let k = scene.intr;
+        let mut points = scene.clone();
+        points.intr = Intrinsics {
+            fx: k.fx / s,
+            fy: k.fy / s,
+            cx: (k.cx - origin[0] as f64) / s,
+            cy: (k.cy - origin[1] as f64) / s,
+            width: k.width / scale,
+            height: k.height / scale,
+        };
+        let points_cfg = RasterConfig {
+            transmittance_min: cfg.feature_transmittance_min,
+            dilation: cfg.dilation / (s * s) as Real,
+            ..cfg
+        };
+        let reference = reference_render(&points, 1, &points_cfg);
+        assert_eq!(
+            (fast.feature_width, fast.feature_height),
+            (points.intr.width, points.intr.height)
+        );
+        assert_agree(
+            &format!("scale {scale} "),
+            &[("features", &fast.features, &reference.features)],
+        );
+        assert!(fast.features.iter().any(|v| v.abs() > 0.1));
+        let blocks = render(
+            &scene.gaussians(),
+            &scene.camera(),
+            &RenderOptions {
+                feature_origin: None,
+                ..opts
+            },
+        )
+        .unwrap();
+        let apart = (fast.features.iter().zip(&blocks.features))
+            .filter(|(a, b)| (*a - *b).abs() > 1e-2)
+            .count();
+        assert!(
+            apart > fast.features.len() / 10,
+            "scale {scale}: {apart} apart"
+        );
+    }
+}
+
+/// A feature scale of zero, or a sample point that is not a number, is refused by name.
+#[test]
+fn a_zero_feature_scale_or_a_non_finite_origin_is_refused() {
+    let scene = random_scene(5, 10, 32, 24, 1, 3);
+    for (scale, origin, name) in [
+        (0, None, "feature_scale"),
+        (2, Some([Real::NAN, 0.0]), "feature_origin"),
+        (2, Some([0.0, Real::INFINITY]), "feature_origin"),
+    ] {
+        let opts = RenderOptions {
+            feature_scale: scale,
+            feature_origin: origin,
+            ..Default::default()
+        };
+        let err = render(&scene.gaussians(), &scene.camera(), &opts).unwrap_err();
+        assert!(err.contains(name), "{err}");
+    }
 }
 
 /// Features asked for at a coarser scale come from the same projection but match the plain

@@ -67,12 +67,30 @@ impl FeatureGrid {
         rows: &mut Vec<Real>,
         blends: &mut Vec<Blend>,
     ) {
+        self.sampled_into(width, height, None, rows, blends)
+    }
+
+    /// [`Self::blended_into`] at the points (s x + o[0], s y + o[1]) of an image
+    /// `full[0]` x `full[1]` (`at` = (s, o, full)) instead of the pixels' centres.
+    pub fn sampled_into(
+        &self,
+        width: usize,
+        height: usize,
+        at: Option<(Real, [Real; 2], [usize; 2])>,
+        rows: &mut Vec<Real>,
+        blends: &mut Vec<Blend>,
+    ) {
+        let place = |p: usize, img: usize, axis: usize| match at {
+            Some((s, o, full)) => (s * p as Real + o[axis], full[axis]),
+            None => (p as Real, img),
+        };
         let k = self.k;
         rows.resize(self.height * width * k, 0.0);
         for (gy, row) in rows.chunks_exact_mut((width * k).max(1)).enumerate() {
             let grid_row = &self.data[gy * self.width * k..][..self.width * k];
             for (x, o) in row.chunks_exact_mut(k.max(1)).enumerate() {
-                let (x0, x1, fx) = cells(x as Real, width, self.width);
+                let (px, img) = place(x, width, 0);
+                let (x0, x1, fx) = cells(px, img, self.width);
                 let (a, b) = (&grid_row[x0 * k..][..k], &grid_row[x1 * k..][..k]);
                 for ((o, &a), &b) in o.iter_mut().zip(a).zip(b) {
                     *o = blend(a, b, fx);
@@ -81,7 +99,8 @@ impl FeatureGrid {
         }
         blends.clear();
         blends.extend((0..height).map(|y| {
-            let (lower, upper, weight) = cells(y as Real, height, self.height);
+            let (py, img) = place(y, height, 1);
+            let (lower, upper, weight) = cells(py, img, self.height);
             Blend {
                 lower,
                 upper,
@@ -155,6 +174,31 @@ mod tests {
                         up[y * w * k + x].to_bits(),
                         "{w}x{h} ({x}, {y})"
                     );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn sampled_rows_are_the_grid_at_the_points() {
+        let (gw, gh, k) = (5, 3, 4);
+        let data: Vec<Real> = (0..gw * gh * k).map(|i| (i as Real * 0.37).sin()).collect();
+        let g = FeatureGrid::new(data, gw, gh, k).unwrap();
+        let (mut rows, mut blends) = (Vec::new(), Vec::new());
+        let mut one = vec![0.0; k];
+        for (s, o, full) in [(2.0, [0.0, 1.0], [23, 17]), (4.0, [-0.5, 2.9], [40, 30])] {
+            let (w, h) = (full[0] / s as usize, full[1] / s as usize);
+            g.sampled_into(w, h, Some((s, o, full)), &mut rows, &mut blends);
+            assert_eq!((rows.len(), blends.len()), (gh * w * k, h));
+            for (y, b) in blends.iter().enumerate() {
+                for x in 0..w {
+                    let (px, py) = (s * x as Real + o[0], s * y as Real + o[1]);
+                    g.sample(px, py, full[0], full[1], &mut one);
+                    for (c, want) in one.iter().enumerate() {
+                        let at = |row: usize| rows[(row * w + x) * k + c];
+                        let v = blend(at(b.lower), at(b.upper), b.weight);
+                        assert_eq!(v.to_bits(), want.to_bits(), "s {s} ({x}, {y})");
+                    }
                 }
             }
         }

@@ -249,8 +249,8 @@ pub fn backward_into(
                 gm2[2 * li + 1] = sg.xy.y;
                 gw[li] = weight;
                 if coarse {
-                    // The coarse splat's centre is (xy + 0.5) / s - 0.5 and its covariance
-                    // (cov2d - dilation) / s^2 + dilation.
+                    // The coarse splat's centre is (xy - origin) / s and its covariance
+                    // (cov2d - dilation) / s^2 + dilation or cov2d / s^2 (see `project`).
                     sg.xy += low.xy / scale;
                     sg.opacity += low.opacity;
                     let gc = conic_to_cov_grad(st.coarse.splats[i].conic, low.conic);

@@ -156,6 +156,12 @@ pub fn render_into(
             "feature_scale must be at least 1 and at most the image size, got {scale} for {w}x{h}"
         ));
     }
+    if let Some(o) = opts
+        .feature_origin
+        .filter(|o| !o.iter().all(|v| v.is_finite()))
+    {
+        return Err(format!("feature_origin must be finite, got {o:?}"));
+    }
     let coarse = k > 0 && scale > 1;
     let st = &mut out.state;
     st.main.reset(w, h, g.len());

@@ -166,6 +166,11 @@ pub struct RenderOptions {
     /// height / s, intrinsics scaled about pixel centres) from the same projection: a feature
     /// target holds little detail, and K channels cost K times a colour channel.
     pub feature_scale: usize,
+    /// Where the coarse features' pixels sample the image: `None`, each pixel is the coarse
+    /// render of its `feature_scale`-square block (its footprints dilated again at the coarse
+    /// scale); `Some(o)`, pixel (i, j) is the main layer's image at the point
+    /// (s i + o[0], s j + o[1]) (the main layer's footprints, point-sampled).
+    pub feature_origin: Option<[Real; 2]>,
     pub config: RasterConfig,
     /// Which compositing implementation runs (the results are the same bits either way).
     pub simd: Simd,
@@ -185,6 +190,7 @@ impl Default for RenderOptions {
             alpha: true,
             features: true,
             feature_scale: 1,
+            feature_origin: None,
             config: RasterConfig::default(),
             simd: Simd::Auto,
             for_backward: false,

@@ -130,7 +130,7 @@ struct Projector<'a> {
     bound_dilation: Real,
     main: Target,
     /// The features' layer and its scale, when it has one.
-    coarse: Option<(Target, Real)>,
+    coarse: Option<(Target, Real, Option<[Real; 2]>)>,
 }
 
 /// A task's part of the outputs: Gaussians `first..first + splats.len()`.
@@ -166,7 +166,7 @@ pub(crate) fn project(
         view: View::new(g, cam, opts),
         bound_dilation: opts.config.dilation * coarse.map_or(1, |s| s * s) as Real,
         main: target(main),
-        coarse: coarse.map(|s| (target(low), s as Real)),
+        coarse: coarse.map(|s| (target(low), s as Real, opts.feature_origin)),
     };
     radii.resize(g.len(), 0.0);
     depth_keys.resize(g.len(), 0);
@@ -575,21 +575,32 @@ fn block<L: Lanes>(p: &Projector, first: usize, at: usize, count: usize, out: &m
     let (x, y) = (lanes(ce.xy[0]), lanes(ce.xy[1]));
     let (ex, ey) = (lanes(ext_x), lanes(ext_y));
     let ok = near & L::bits(sh.ok) & L::bits(c(0.0).lt(level));
-    // The same Gaussian in the coarse layer: centre (xy + 0.5) / s - 0.5, covariance
-    // (cov2d - dilation) / s^2 + dilation.
-    let low = if let Some((target, s)) = p.coarse {
+    // The same Gaussian in the coarse layer. Each pixel the render of its block: centre
+    // (xy + 0.5) / s - 0.5, covariance (cov2d - dilation) / s^2 + dilation. Or the main
+    // layer's image at the points s i + origin: centre (xy - origin) / s, covariance
+    // cov2d / s^2 (the main layer's footprint).
+    let low = if let Some((target, s, origin)) = p.coarse {
         let (scale, s2, dilation) = (c(s), c(s * s), c(v.cfg.dilation));
-        let cov = [
-            cxx.sub(dilation).div(s2).add(dilation),
-            sh.cov2d[1].div(s2),
-            cyy.sub(dilation).div(s2).add(dilation),
-        ];
+        let (cov, lx, ly) = match origin {
+            Some([ox, oy]) => (
+                [cxx.div(s2), sh.cov2d[1].div(s2), cyy.div(s2)],
+                ce.xy[0].sub(c(ox)).div(scale),
+                ce.xy[1].sub(c(oy)).div(scale),
+            ),
+            None => {
+                let half = c(0.5);
+                (
+                    [
+                        cxx.sub(dilation).div(s2).add(dilation),
+                        sh.cov2d[1].div(s2),
+                        cyy.sub(dilation).div(s2).add(dilation),
+                    ],
+                    ce.xy[0].add(half).div(scale).sub(half),
+                    ce.xy[1].add(half).div(scale).sub(half),
+                )
+            }
+        };
         let (low_ok, low_conic) = conic(cov);
-        let half = c(0.5);
-        let (lx, ly) = (
-            ce.xy[0].add(half).div(scale).sub(half),
-            ce.xy[1].add(half).div(scale).sub(half),
-        );
         let (lex, ley) = (extent(level, cov[0]), extent(level, cov[2]));
         // Spelt out, not closures or `array::map`, which are not always inlined into the AVX2
         // code.
