@@ -647,13 +647,14 @@ def test_features_train_at_about_feature_width_and_below_the_colour():
         c = slam.mapper.config()
         return width >> c["finest_level"], width >> (c["finest_level"] + c["feature_level_offset"])
 
-    # The coarsest level at least 150 wide, one level below the colour at least, two at most.
-    assert widths(640) == (320, 160)
+    # The coarsest level at least 80 wide, one level below the colour at least, two at most.
+    assert widths(640) == (320, 80)
     assert widths(600) == (600, 150)
     assert widths(1200) == (600, 150)
-    assert widths(1280) == (320, 160)
-    assert widths(848) == (424, 212)
+    assert widths(1280) == (320, 80)
+    assert widths(848) == (424, 106)
     assert widths(160) == (160, 80)
+    assert widths(640, feature_width=150) == (320, 160)
     assert widths(640, feature_width=320) == (320, 160)
     assert widths(640, feature_width=16) == (320, 80)
     with pytest.raises(ValueError, match="feature_width"):

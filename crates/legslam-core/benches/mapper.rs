@@ -18,7 +18,9 @@
 //! bench's, is dense Adam but for the features and SH), LEGSLAM_BENCH_DENSE_FEATURES (set: the
 //! features dense too, `adam_sparse_features` false), LEGSLAM_BENCH_DENSE_SH (set: the SH dense
 //! too, `adam_sparse_sh` false), LEGSLAM_BENCH_FEATURE_OFFSET (the mapper option
-//! `feature_level_offset`, default 1: features at 160x120, as SLAM trains a 640-wide input),
+//! `feature_level_offset`, default 2: features at 80x60, as SLAM trains a 640-wide input),
+//! LEGSLAM_BENCH_FEATURE_JITTER (the mapper option `feature_jitter`, default 1; 0 renders each
+//! coarse pixel's block, as SLAM did with features at 160x120 before 2026-12-07),
 //! LEGSLAM_BENCH_UNORDERED (1 adds a map grown without the mapper option `spatial_order`, on
 //! the CPU's best path: compare it with that path's column).
 
@@ -106,7 +108,8 @@ fn main() {
         levels: 4,
         sh_degree: 3,
         num_features: k,
-        feature_level_offset: env("LEGSLAM_BENCH_FEATURE_OFFSET", 1),
+        feature_level_offset: env("LEGSLAM_BENCH_FEATURE_OFFSET", 2),
+        feature_jitter: env("LEGSLAM_BENCH_FEATURE_JITTER", 1) != 0,
         ..Default::default()
     };
     config.grow.stride = 2;

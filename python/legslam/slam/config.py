@@ -177,12 +177,13 @@ class SLAMConfig:
     grow_width: int = 160
     #: Language features train at the coarsest pyramid level at least this wide, and at least
     #: one level below the colour (at most two): their target is the encoder's patch grid
-    #: (16x16) upsampled, so finer pixels add cost, not information. A 640-wide input trains
-    #: them at 160; a 600-wide one (whose colour trains at full resolution) at 150 rather than
-    #: 300: on Replica renders real time gained 0.2-1.3 dB and synchronous runs were a fifth to
-    #: a quarter faster (0-0.4 dB less), with the same held-out feature agreement (README, *At
-    #: the camera's pace*).
-    feature_width: int = 150
+    #: (16x16) upsampled, so finer pixels add cost, not information. Each of their pixels is
+    #: the colour level's image at a point of its block drawn afresh every iteration (mapper
+    #: option `feature_jitter`). A 640-wide input trains them at 80 (colour at 320), a 600-wide
+    #: one at 150 (colour at 600). On 7-Scenes, 80 instead of 160 gave held-out feature
+    #: agreement 0.759 against 0.730 and a cheaper mapping iteration (README, *The engine's
+    #: speed*).
+    feature_width: int = 80
     #: Degree of the spherical harmonics of each Gaussian's colour (0: one colour seen alike
     #: from everywhere; 3, as LEG-SLAM and 3DGS, 16 coefficients a channel). On 7-Scenes, 200
     #: frames: 23.3 / 24.1 / 25.0 / 25.8 dB with degree 0 / 1 / 2 / 3, at the same speed
