@@ -124,6 +124,13 @@ fn cells(p: Real, img: usize, grid: usize) -> (usize, usize, Real) {
 mod tests {
     use super::*;
 
+    /// A 5x3 grid of 4 channels, every value different.
+    fn wavy_grid() -> FeatureGrid {
+        let (gw, gh, k) = (5, 3, 4);
+        let data: Vec<Real> = (0..gw * gh * k).map(|i| (i as Real * 0.37).sin()).collect();
+        FeatureGrid::new(data, gw, gh, k).unwrap()
+    }
+
     #[test]
     fn upsampling_interpolates_between_cell_centres_and_repeats_edges() {
         // 2x1 grid, one channel: values 0 and 1 at cell centres. Upsampled to 4 pixels wide,
@@ -138,9 +145,8 @@ mod tests {
 
     #[test]
     fn upsampling_is_the_sample_at_every_pixel() {
-        let (gw, gh, k) = (5, 3, 4);
-        let data: Vec<Real> = (0..gw * gh * k).map(|i| (i as Real * 0.37).sin()).collect();
-        let g = FeatureGrid::new(data, gw, gh, k).unwrap();
+        let g = wavy_grid();
+        let k = g.k;
         let (w, h) = (23, 17);
         let up = g.upsample(w, h);
         assert_eq!(up.len(), w * h * k);
@@ -156,9 +162,8 @@ mod tests {
 
     #[test]
     fn blended_rows_expand_to_the_upsampled_target_bit_for_bit() {
-        let (gw, gh, k) = (5, 3, 4);
-        let data: Vec<Real> = (0..gw * gh * k).map(|i| (i as Real * 0.37).sin()).collect();
-        let g = FeatureGrid::new(data, gw, gh, k).unwrap();
+        let g = wavy_grid();
+        let (gh, k) = (g.height, g.k);
         let (mut rows, mut blends) = (Vec::new(), Vec::new());
         // Finer and coarser than the grid, and the grid's own size.
         for (w, h) in [(23, 17), (3, 2), (5, 3)] {
@@ -181,9 +186,8 @@ mod tests {
 
     #[test]
     fn sampled_rows_are_the_grid_at_the_points() {
-        let (gw, gh, k) = (5, 3, 4);
-        let data: Vec<Real> = (0..gw * gh * k).map(|i| (i as Real * 0.37).sin()).collect();
-        let g = FeatureGrid::new(data, gw, gh, k).unwrap();
+        let g = wavy_grid();
+        let (gh, k) = (g.height, g.k);
         let (mut rows, mut blends) = (Vec::new(), Vec::new());
         let mut one = vec![0.0; k];
         for (s, o, full) in [(2.0, [0.0, 1.0], [23, 17]), (4.0, [-0.5, 2.9], [40, 30])] {
