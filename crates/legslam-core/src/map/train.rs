@@ -177,7 +177,8 @@ pub struct Mapper {
     /// The window the queue was drawn from.
     queue_window: usize,
     rng: Rng,
-    /// Draws the features' sample points (apart, so that keyframes are drawn alike either way).
+    /// Draws the features' sample points: a stream of its own, so that `feature_jitter` on or
+    /// off draws the same keyframes.
     jitter_rng: Rng,
     /// Since the last refinement: screen-space gradient norms (densification) and
     /// contributions to the views (pruning), per Gaussian.
