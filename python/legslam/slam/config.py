@@ -215,8 +215,12 @@ class SLAMConfig:
     #: 32.13 dB at 13.1 and 33.23 dB at 9.9. 1.25 since frames are tracked eight pixels at a
     #: time (2026-11-26): 7-Scenes 23.61 dB at 14.2 fps, against 0.75's 23.26 dB at 16.2 and,
     #: with the old tracker in the same hour, 23.54 dB at 13.2; the Replica render 33.12 dB
-    #: at 13.3 fps, against 0.75's 31.65 dB at 17.2.
-    final_time: float = 1.25
+    #: at 13.3 fps, against 0.75's 31.65 dB at 17.2. 0.95 since features train at 80x60,
+    #: point-sampled (2026-12-07, at the camera's pace, alternating where repeated): the
+    #: Kinect-noise Replica render 35.19 and 35.51 dB at 14.9 and 14.8 fps, against 1.25's
+    #: 35.32-35.81 dB at 13.0 and the synchronous 35.30; 7-Scenes 25.61 dB at 15.3 fps
+    #: (synchronous 24.92); the exact Replica render 36.24 dB at 15.3 fps (synchronous 35.58).
+    final_time: float = 0.95
     #: The final iterations' learning rates fall log-linearly from where the frames left them
     #: (the mapper's; with `mapping_thread`, the real-time scales of them) to this many times
     #: that (1: constant), as the iterations (or, in real time, the time) run out. At a
