@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::{empty_scene, hard_scene, random_scene, reference_render, Rng, Scene};
+use common::{hard_scene, random_scene, random_scene_in_view, reference_render, Scene};
 use legslam_core::camera::Intrinsics;
 use legslam_core::raster::{backward, render, ImageGrads, RasterConfig, RenderOptions};
 use legslam_core::Real;
@@ -166,24 +166,6 @@ fn render_is_deterministic() {
     assert_eq!(a.features, b.features);
 }
 
-/// A random scene whose Gaussians' centres all lie inside the image: the projection's Jacobian
-/// clamps none of them, which a camera with another principal point would clamp elsewhere.
-fn scene_in_view(seed: u64, n: usize, width: usize, height: usize, k: usize) -> Scene {
-    let mut rng = Rng::new(seed);
-    let mut scene = empty_scene(&mut rng, width, height, 1, k);
-    let i = scene.intr;
-    let span = |c: f64, f: f64, size: usize| (-(c + 0.5) / f, (size as f64 - 0.5 - c) / f);
-    let ((x0, x1), (y0, y1)) = (span(i.cx, i.fx, width), span(i.cy, i.fy, height));
-    for _ in 0..n {
-        let z = rng.uniform(1.0, 4.0);
-        let ls = [(); 3].map(|_| rng.uniform(-3.0, -1.5));
-        let pc = [z * rng.uniform(x0, x1), z * rng.uniform(y0, y1), z];
-        let logit = rng.uniform(-1.0, 3.0);
-        scene.push(&mut rng, pc, ls, logit);
-    }
-    scene
-}
-
 /// Features point-sampled at a coarser scale (`feature_origin` o) are the main layer's image at
 /// the points (s i + o[0], s j + o[1]): the plain reference of a camera whose pixels lie there
 /// (focal lengths divided by s, principal point moved to o and divided by s, the dilation by
@@ -196,7 +178,7 @@ fn features_point_sampled_at_a_coarser_scale_match_the_points_reference() {
         (32, 4, [1.75, -0.5]),
         (33, 3, [2.4, 0.3]),
     ] {
-        let scene = scene_in_view(seed, 300, 72, 48, 6);
+        let scene = random_scene_in_view(seed, 300, 72, 48, 1, 6);
         let cfg = RasterConfig::default();
         let opts = RenderOptions {
             sh_degree: 1,

@@ -125,12 +125,45 @@ pub fn random_scene(
     sh_degree: usize,
     k: usize,
 ) -> Scene {
+    scene_between(seed, n, width, height, sh_degree, k, |_| {
+        ([-0.6, 0.6], [-0.5, 0.5])
+    })
+}
+
+/// [`random_scene`] with every Gaussian's centre inside the image: the projection's Jacobian
+/// clamps none of them (a camera with another principal point would clamp others).
+pub fn random_scene_in_view(
+    seed: u64,
+    n: usize,
+    width: usize,
+    height: usize,
+    sh_degree: usize,
+    k: usize,
+) -> Scene {
+    scene_between(seed, n, width, height, sh_degree, k, |i| {
+        let span = |c: f64, f: f64, size: usize| [-(c + 0.5) / f, (size as f64 - 0.5 - c) / f];
+        (span(i.cx, i.fx, width), span(i.cy, i.fy, height))
+    })
+}
+
+/// `n` Gaussians at 1-4 m whose centres' x / z and y / z lie in the spans `spans` gives for
+/// the camera.
+fn scene_between(
+    seed: u64,
+    n: usize,
+    width: usize,
+    height: usize,
+    sh_degree: usize,
+    k: usize,
+    spans: impl Fn(&Intrinsics) -> ([f64; 2], [f64; 2]),
+) -> Scene {
     let mut rng = Rng::new(seed);
     let mut s = empty_scene(&mut rng, width, height, sh_degree, k);
+    let ([x0, x1], [y0, y1]) = spans(&s.intr);
     for _ in 0..n {
         let z = rng.uniform(1.0, 4.0);
-        let x = z * rng.uniform(-0.6, 0.6);
-        let y = z * rng.uniform(-0.5, 0.5);
+        let x = z * rng.uniform(x0, x1);
+        let y = z * rng.uniform(y0, y1);
         let ls = [
             rng.uniform(-3.0, -1.5),
             rng.uniform(-3.0, -1.5),
