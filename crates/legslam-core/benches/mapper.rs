@@ -30,6 +30,7 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use common::env;
 use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::map::{FeatureGrid, Mapper, MapperConfig};
 use legslam_core::raster::{vector_paths, Simd};
@@ -39,13 +40,6 @@ use legslam_core::Real;
 const W: usize = 640;
 const H: usize = 480;
 const F: f64 = 585.0;
-
-fn env(name: &str, default: usize) -> usize {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
 
 fn data_dir() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/7scenes_tsdf_fusion/data")

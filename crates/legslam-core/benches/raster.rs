@@ -2,7 +2,10 @@
 //! 7-Scenes depth frame (from `../shared/data`, beside the checkout), rendered from a view
 //! 5 cm and 2 degrees off the frame's own, at 640x480, for K = 0 and 64 on 1 and 2 threads;
 //! K = 64 both at every pixel and 4 times coarser (160x120, `feature_scale` 4: about the
-//! feature target's own resolution, as the mapper trains them).
+//! feature target's own resolution). The coarse layer renders as the mapper trains it: each
+//! pixel the main layer's image at one point of its block (`feature_origin`), here the block's
+//! centre; LEGSLAM_BENCH_FEATURE_BLOCKS=1 renders each pixel's block instead (the mapper option
+//! `feature_jitter` false, and this bench's case before 2026-12-07).
 //! Without the data folder a synthetic wall of the same size stands in. Each case runs the
 //! portable compositing and the AVX2 one (where the CPU has it) alternately; the ratio is the
 //! speed-up over the portable path.
@@ -15,7 +18,7 @@ mod common;
 use std::path::PathBuf;
 use std::sync::LazyLock;
 
-use common::{compare, samples, variant};
+use common::{compare, env, samples, variant};
 use legslam_core::camera::{Intrinsics, Pose};
 use legslam_core::raster::{
     backward_into, render, render_into, vector_paths, BackwardScratch, Camera, Gaussians,
@@ -133,10 +136,13 @@ fn camera() -> Camera {
 }
 
 fn options(simd: Simd, feature_scale: usize, for_backward: bool) -> RenderOptions {
+    let centre = (feature_scale as Real - 1.0) / 2.0;
+    let points = feature_scale > 1 && env("LEGSLAM_BENCH_FEATURE_BLOCKS", 0) == 0;
     RenderOptions {
         simd,
         feature_scale,
         for_backward,
+        feature_origin: points.then_some([centre; 2]),
         ..Default::default()
     }
 }

@@ -94,12 +94,17 @@ pub fn cpu_ms() -> f64 {
         / 1e6
 }
 
-/// Samples per case: `LEGSLAM_BENCH_SAMPLES`, else `default`.
-pub fn samples(default: usize) -> usize {
-    std::env::var("LEGSLAM_BENCH_SAMPLES")
+/// The environment variable `name` as a number, else `default`.
+pub fn env(name: &str, default: usize) -> usize {
+    std::env::var(name)
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
+}
+
+/// Samples per case: `LEGSLAM_BENCH_SAMPLES`, else `default`.
+pub fn samples(default: usize) -> usize {
+    env("LEGSLAM_BENCH_SAMPLES", default)
 }
 
 /// Whether `case` contains `LEGSLAM_BENCH_FILTER` (every case when it is unset).
