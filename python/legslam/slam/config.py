@@ -321,7 +321,12 @@ class SLAMConfig:
     #: render 0.46 against 0.45 cm, 34.33 against 34.07 dB. Every 5th: 4.03 cm, 24.61 dB; 0.47
     #: cm, 34.05 dB. Off by default: on two other Replica stretches (room-sized views, fusion
     #: twice 7-Scenes' cost) the ATE stayed the same (0.52, 0.47 cm) and the frames came at
-    #: 23-24 instead of 30 a second.
+    #: 23-24 instead of 30 a second. Again with the cheaper mapping iteration (2026-12-07, paced,
+    #: one run each against two): 7-Scenes 3.65 against 4.32-4.33 cm, 25.13 against 25.53-25.55
+    #: dB, but 69 frames late against 2-4; the Kinect-noise render 0.49 against 0.54 cm, 35.63
+    #: against 35.29-35.45 dB, 36 late against none; the exact one 0.46 against 0.45 cm, 35.82
+    #: against 35.74-36.18 dB, 65 late against none. Still off: a live camera would drop those
+    #: frames.
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
     surface_realtime: bool = False
