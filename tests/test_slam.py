@@ -332,10 +332,11 @@ def test_final_learning_rates_fall_by_the_configured_factor(scene, monkeypatch):
         assert set(s) == set(groups)
         np.testing.assert_allclose(list(s.values()), f ** (k / 4), rtol=1e-12)
     # Real time, by the time spent: each group from the scale the frames trained it with down,
-    # never below the factor times that scale.
+    # never below the factor times that scale. The budget (3 times the frames' time) holds
+    # many batches, also on a loaded machine (at 0.5 a CI run beside a build got one).
     monkeypatch.setattr(slam_module, "FINAL_BATCH", 2)
     for start, geometry in ((1.0, 1.0), (3.0, 4.5)):
-        timed = scales(12, final_iters=0, final_time=0.5, mapping_thread=True, final_lr_factor=0.1,
+        timed = scales(12, final_iters=0, final_time=3.0, mapping_thread=True, final_lr_factor=0.1,
                        realtime_lr_scale=start, realtime_geometry_lr_scale=geometry)
         assert len(timed) >= 2
         for group in groups:
