@@ -150,7 +150,7 @@ fn options(simd: Simd, feature_scale: usize, for_backward: bool) -> RenderOption
 /// Forward, or forward and backward, of the scene with `k` features through `simd`, with the
 /// buffers a training loop keeps.
 fn pass(k: usize, scale: usize, simd: Simd, backward: bool) -> impl FnMut() {
-    let (g, cam) = (gaussians(k), camera());
+    let (g, cam, opts) = (gaussians(k), camera(), options(simd, scale, backward));
     let d_color = vec![0.1; W * H * 3];
     let d_depth = vec![0.1; W * H];
     let d_feat = vec![0.01; (W / scale) * (H / scale) * k];
@@ -158,7 +158,7 @@ fn pass(k: usize, scale: usize, simd: Simd, backward: bool) -> impl FnMut() {
     let mut scratch = BackwardScratch::default();
     let mut grads = Gradients::default();
     move || {
-        render_into(&g, &cam, &options(simd, scale, backward), &mut r).unwrap();
+        render_into(&g, &cam, &opts, &mut r).unwrap();
         if backward {
             let image_grads = ImageGrads {
                 color: Some(&d_color),
