@@ -303,12 +303,17 @@ impl PyOdometry {
 #[pyclass(module = "legslam._core", name = "TsdfCore")]
 struct PyTsdf {
     inner: Tsdf,
+    /// Worker threads of its own when asked for (see `pool`), else rayon's global pool.
+    pool: Option<rayon::ThreadPool>,
 }
 
 #[pymethods]
 impl PyTsdf {
+    /// `threads`, `background`: a pool of its own, as `MapperCore`'s (a fusion beside the
+    /// tracker in real time).
     #[new]
-    #[pyo3(signature = (voxel, truncation, max_weight, min_depth, max_depth))]
+    #[pyo3(signature = (voxel, truncation, max_weight, min_depth, max_depth, threads=None, background=false))]
+    #[allow(clippy::too_many_arguments)] // Python's keyword arguments
     fn new(
         py: Python<'_>,
         voxel: f64,
@@ -316,6 +321,8 @@ impl PyTsdf {
         max_weight: f32,
         min_depth: f64,
         max_depth: f64,
+        threads: Option<usize>,
+        background: bool,
     ) -> PyResult<Self> {
         let cfg = TsdfConfig {
             voxel,
@@ -325,7 +332,8 @@ impl PyTsdf {
             max_depth,
         };
         let inner = engine_call(py, || Tsdf::new(cfg))?;
-        Ok(PyTsdf { inner })
+        let pool = pool::build(threads, "legslam-surface", background)?;
+        Ok(PyTsdf { inner, pool })
     }
 
     /// Fuses `depth` (float32 HxW metres, 0 = none) seen through `k` from `pose` (c2w).
@@ -341,7 +349,7 @@ impl PyTsdf {
         let p = pose(pose_c2w, "pose")?;
         let d = contiguous("depth", &depth)?;
         let inner = &mut self.inner;
-        engine_call(py, || inner.integrate(d, &kk, &p))
+        pool::call(&self.pool, py, || inner.integrate(d, &kk, &p))
     }
 
     /// The fused surface's depth (float32 height x width, 0 where none) through `k` from
@@ -369,7 +377,7 @@ impl PyTsdf {
             .transpose()?;
         let near = near.as_ref().map(|a| contiguous("near", a)).transpose()?;
         let inner = &self.inner;
-        let out = engine_call(py, || {
+        let out = pool::call(&self.pool, py, || {
             let mut out = vec![0.0f32; w * h];
             match near {
                 Some(d) => inner.raycast_near(&kk, &p, d, hole_cell, &mut out),
