@@ -160,12 +160,13 @@ def main() -> int:
         print(f"| {r['frames'][0]}-{r['frames'][1] - 1} | {r['error_cm']:.2f} cm | ({r['pairs']}) "
               f"{r['ground_truth'][0]:.2f} cm / {r['ground_truth'][1]:.1f} | "
               f"{r['slam'][0]:.2f} cm / {r['slam'][1]:.1f} |")
-    print("\n| stage | mean ms | median ms | total s |\n|---|---|---|---|")
+    print("\n| stage | mean ms | median ms | p95 ms | max ms | total s |\n|---|---|---|---|---|---|")
     for k, v in t.items():
         if isinstance(v, dict) and "mean_ms" in v:
-            print(f"| {k} | {v['mean_ms']:.1f} | {v['median_ms']:.1f} | {v['total_s']:.1f} |")
+            print(f"| {k} | {v['mean_ms']:.1f} | {v['median_ms']:.1f} | {v['p95_ms']:.1f} | "
+                  f"{v['max_ms']:.1f} | {v['total_s']:.1f} |")
         elif isinstance(v, dict) and "total_s" in v:
-            print(f"| {k} | | | {v['total_s']:.1f} |")
+            print(f"| {k} | | | | | {v['total_s']:.1f} |")
     Path(args.out, "bench.json").write_text(json.dumps(
         {"metrics": m, "timings": t, "odometry_ate_m": odo_ate, "odometry_ms": odo_ms,
          "rpe_median_cm": {"slam": rpe_slam, "odometry": rpe_odo},

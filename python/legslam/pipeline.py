@@ -163,6 +163,9 @@ def _timing_table(slam: SLAM, wall_s: float, live_s: float, viewer_ms: list[floa
     def summary(v):
         return {"mean_ms": float(np.mean(v)) if v else 0.0,
                 "median_ms": float(np.median(v)) if v else 0.0,
+                # A live camera's frames wait for the slow ones.
+                "p95_ms": float(np.percentile(v, 95)) if v else 0.0,
+                "max_ms": float(np.max(v)) if v else 0.0,
                 "total_s": float(np.sum(v)) / 1e3, "count": len(v)}
 
     table = {k: summary(v) for k, v in slam.timings.items()}
