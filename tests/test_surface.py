@@ -1,10 +1,15 @@
 """The fused surface a frame is tracked against (legslam.slam.surface): on the built-in scene,
 fusing noisy views brings the reference depth closer to the truth than one view's; a pose-graph
-correction leaves the surface where the camera sees it; the SLAM option turns it on and off.
+correction leaves the surface where the camera sees it; in the background (real time) a worker
+fuses what the tracker would, never queues a frame behind a busy fusion, and a correction during
+one reaches its reference; the SLAM option turns it on and off.
 The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself against
 analytic scenes."""
 
 from __future__ import annotations
+
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -98,6 +103,115 @@ def test_every_nth_frame_is_fused_and_the_frames_between_keep_its_reference(smal
         Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=0)
 
 
+def settled(surface: Surface, frame: int) -> View:
+    """The reference of `frame` once the background worker has fused it."""
+    deadline = time.monotonic() + 30
+    while surface.reference is None or surface.reference[0] != frame:
+        assert time.monotonic() < deadline, f"frame {frame} was not fused in 30 s"
+        time.sleep(0.001)
+    return surface.reference[1]
+
+
+class Gated:
+    """A volume whose fusions wait until `open` is set; counts them."""
+
+    def __init__(self, core):
+        self.core, self.open, self.fused = core, threading.Event(), 0
+
+    def integrate(self, *args):
+        assert self.open.wait(30), "the test never opened the gate"
+        self.fused += 1
+        return self.core.integrate(*args)
+
+    def raycast(self, *args):
+        return self.core.raycast(*args)
+
+    @property
+    def memory_bytes(self):
+        return self.core.memory_bytes
+
+
+def test_a_background_surface_fuses_what_the_tracker_would(small_synthetic):
+    frames = views(small_synthetic, noise=0.005)
+    K = frames[0][2]
+    inline = Surface(0.01, 0.04, (0.1, 10.0), K)
+    background = Surface(0.01, 0.04, (0.1, 10.0), K, background=True, threads=1)
+    for i, (view, _, _) in enumerate(frames[:5]):
+        expected = fused(inline, i, view)
+        background.add(i, view)
+        got = settled(background, i)
+        assert got.rgb is view.rgb and got.pose is view.pose
+        assert np.array_equal(got.depth, expected.depth)
+    background.close()
+    assert background.memory_bytes == inline.memory_bytes
+
+
+def test_a_frame_due_while_the_worker_is_busy_is_not_queued(small_synthetic):
+    frames = views(small_synthetic, noise=0.005)
+    surface = Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=2, background=True)
+    gate = surface._core = Gated(surface._core)
+    surface.add(0, frames[0][0])
+    # Frames 1 and 3 are not due (every 2nd), frame 2 is but the worker is still busy.
+    for i in (1, 2, 3):
+        surface.add(i, frames[i][0])
+        assert surface.reference is None
+    gate.open.set()
+    settled(surface, 0)
+    # The frame after the busy one is due at once; then every 2nd again.
+    surface.add(4, frames[4][0])
+    settled(surface, 4)
+    surface.add(5, frames[5][0])
+    assert surface.reference[0] == 4
+    surface.add(6, frames[6][0])
+    settled(surface, 6)
+    assert gate.fused == 3
+    surface.close()
+
+
+def test_a_correction_during_a_fusion_reaches_its_reference(small_synthetic):
+    frames = views(small_synthetic, noise=0.005)
+    K = frames[0][2]
+    surface, plain = (Surface(0.01, 0.04, (0.1, 10.0), K, background=b) for b in (True, False))
+    gate = surface._core = Gated(surface._core)
+    gate.open.set()
+    for i, (view, _, _) in enumerate(frames[:5]):
+        surface.add(i, view)
+        plain.add(i, view)
+        settled(surface, i)
+    gate.open.clear()
+    surface.add(5, frames[5][0])
+    plain.add(5, frames[5][0])
+    c, s = np.cos(0.1), np.sin(0.1)
+    C = np.array([[c, -s, 0, 0.2], [s, c, 0, -0.1], [0, 0, 1, 0.05], [0, 0, 0, 1.0]])
+    poses = [C @ v.pose for v, _, _ in frames[:6]]
+    surface.correct(C, poses)
+    # Until frame 5 is fused the reference is frame 4's, moved with it.
+    assert surface.reference[0] == 4 and np.allclose(surface.reference[1].pose, poses[4])
+    gate.open.set()
+    ref = settled(surface, 5)
+    assert np.allclose(ref.pose, poses[5])
+    assert np.array_equal(ref.depth, plain.reference[1].depth)
+    # The next frame, in the corrected world, sees what it saw before the correction.
+    view = frames[6][0]
+    surface.add(6, View(C @ view.pose, view.rgb, view.depth))
+    assert np.abs(settled(surface, 6).depth - fused(plain, 6, view).depth).max() < 1e-3
+    surface.close()
+
+
+def test_real_time_fuses_in_the_background(small_synthetic):
+    seq = open_dataset(small_synthetic)
+    f = seq[0]
+    slam = SLAM(SLAMConfig(features=False, relocalise=False, loop_closure=False, mapping_thread=True,
+                           realtime_surface_every=1, final_time=0.0),
+                f.K, f.rgb.shape[1], f.rgb.shape[0])
+    for i in range(4):
+        slam.step(seq[i].rgb, seq[i].depth)
+    slam.finish(train=False)
+    assert slam.surface.reference is not None
+    assert slam.trajectory_events()["surface_memory_mb"] > 0
+    assert set(slam.states[1:]) == {"ok"}
+
+
 def test_the_slam_option_turns_the_surface_on_and_off(small_synthetic):
     seq = open_dataset(small_synthetic)
     f = seq[0]
@@ -105,13 +219,13 @@ def test_the_slam_option_turns_the_surface_on_and_off(small_synthetic):
     on = SLAM(SLAMConfig(**base), f.K, f.rgb.shape[1], f.rgb.shape[0])
     off = SLAM(SLAMConfig(surface_voxel=0, **base), f.K, f.rgb.shape[1], f.rgb.shape[0])
     assert on.surface is not None and off.surface is None
-    realtime = SLAM(SLAMConfig(mapping_thread=True, **base), f.K, f.rgb.shape[1], f.rgb.shape[0])
+    realtime = SLAM(SLAMConfig(mapping_thread=True, surface_realtime=False, **base), f.K,
+                    f.rgb.shape[1], f.rgb.shape[0])
     assert realtime.surface is None
-    # Asked for in real time, it fuses every realtime_surface_every-th frame; synchronous runs
-    # every surface_every-th.
+    # In real time it fuses every realtime_surface_every-th frame; synchronous runs every
+    # surface_every-th.
     cadence = dict(surface_every=2, realtime_surface_every=4, **base)
-    timed = SLAM(SLAMConfig(mapping_thread=True, surface_realtime=True, **cadence), f.K,
-                 f.rgb.shape[1], f.rgb.shape[0])
+    timed = SLAM(SLAMConfig(mapping_thread=True, **cadence), f.K, f.rgb.shape[1], f.rgb.shape[0])
     synchronous = SLAM(SLAMConfig(**cadence), f.K, f.rgb.shape[1], f.rgb.shape[0])
     assert (timed.surface.every, synchronous.surface.every) == (4, 2)
     for slam in (realtime, timed, synchronous):

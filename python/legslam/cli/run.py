@@ -50,10 +50,13 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         f"learning rates ({d.realtime_geometry_lr_scale:g} times for the "
                         "Gaussians' positions and shapes), with no keyframe within "
                         f"{d.realtime_keyframe_min_gap} frames of the last, encoding one keyframe in "
-                        f"{d.realtime_feature_every} (language features, places), and at "
+                        f"{d.realtime_feature_every} (language features, places), fusing one "
+                        f"frame in {d.realtime_surface_every} into the surface it tracks against, "
+                        "in a worker thread, and at "
                         f"the end trains on for {d.final_time:g} times as long as the frames took "
                         "(config: mapping_thread, realtime_lr_scale, realtime_geometry_lr_scale, "
-                        "realtime_keyframe_min_gap, realtime_feature_every, final_time)")
+                        "realtime_keyframe_min_gap, realtime_feature_every, surface_realtime, "
+                        "realtime_surface_every, final_time)")
     p.add_argument("--pace", type=float, nargs="?", const=1.0, default=None, metavar="SPEED",
                    help="play the recording as its camera delivered it: no frame before its "
                         "timestamp says (SPEED times the recorded speed, default 1), so that "

@@ -313,23 +313,19 @@ class SLAMConfig:
     #: depth noise 0.48 against 0.54 cm, 35.62 against 35.02 dB, the same render exact 0.47
     #: against 0.46 cm, 35.84 against 35.90 dB (README: *Tracking against the fused surface*).
     #: `surface_realtime`: in real time too, where every `realtime_surface_every`-th tracked
-    #: frame is fused (the fusion and ray-cast run on the tracking thread and take the
-    #: mapping's cores: fusing every frame, the first version kept up with 13.7 of a 30 Hz
-    #: camera's frames a second on 7-Scenes). Paced, every 3rd against off (2026-11-28, the
-    #: same hour): 7-Scenes ATE 3.62 against 4.28 cm, 24.55 against 24.85 dB; the Kinect-noise
-    #: render 0.49 against 0.54 cm (three runs each), 33.74 against 34.05 dB (means); the exact
-    #: render 0.46 against 0.45 cm, 34.33 against 34.07 dB. Every 5th: 4.03 cm, 24.61 dB; 0.47
-    #: cm, 34.05 dB. Off by default: on two other Replica stretches (room-sized views, fusion
-    #: twice 7-Scenes' cost) the ATE stayed the same (0.52, 0.47 cm) and the frames came at
-    #: 23-24 instead of 30 a second. Again with the cheaper mapping iteration (2026-12-07, paced,
-    #: one run each against two): 7-Scenes 3.65 against 4.32-4.33 cm, 25.13 against 25.53-25.55
-    #: dB, but 69 frames late against 2-4; the Kinect-noise render 0.49 against 0.54 cm, 35.63
-    #: against 35.29-35.45 dB, 36 late against none; the exact one 0.46 against 0.45 cm, 35.82
-    #: against 35.74-36.18 dB, 65 late against none. Still off: a live camera would drop those
-    #: frames.
+    #: frame is fused by a worker thread (its engine threads at the mapping threads' lowered
+    #: priority; a frame due while one is being fused is not queued) and the frames between are
+    #: tracked against the last one fused. Paced, on against off (2026-12-07, one run each; off
+    #: on the renders: two runs that morning): 7-Scenes ATE 3.69 against 4.26 cm, 25.06 against 25.51 dB every 5th frame (the
+    #: synchronous map 24.92), 2 frames late either way; the 400-frame Replica render with
+    #: Kinect-like noise 0.47 against 0.54 cm, 35.67 against 35.29-35.45 dB, the same render
+    #: exact 0.46 against 0.45 cm, 35.94 against 35.74-36.18 dB, a room-sized Replica stretch
+    #: (fusion twice 7-Scenes' cost) 0.53 against 0.52 cm, 34.52 against 34.68 dB; none late.
+    #: Fused on the tracking thread it had put 36-69 frames late. Every frame (1): 7-Scenes 3.84
+    #: cm, 24.99 dB, the mapper's live iterations halved, 182 late.
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
-    surface_realtime: bool = False
+    surface_realtime: bool = True
     surface_every: int = 1
     realtime_surface_every: int = 3
     #: With `relocalise`: an alignment whose residual is more than this many times the recent

@@ -9,9 +9,14 @@ starts two truncation distances in front of that depth; one through a hole cover
 depths the frame measured (the engine's `raycast_near`). Where the volume has no surface, the
 frame's own depth stays.
 
-Every `every`-th tracked frame is fused and becomes the reference (real time fuses fewer: the
-work runs on the tracking thread); the frames between are tracked against the last one fused.
-A relocalised frame is fused at once: the reference before it shows another place.
+Every `every`-th tracked frame is fused and becomes the reference (real time fuses fewer); the
+frames between are tracked against the last one fused. A relocalised frame is fused at once:
+the reference before it shows another place.
+
+In real time (`background`) a worker thread fuses, so that a frame never waits for the fusion
+of the one before: the reference is the last frame whose fusion has finished, and a frame due
+while the worker is still busy is not queued (the next one is due instead), so the work never
+piles up when the frames come faster than it.
 
 A pose-graph correction moves keyframes and frames; the volume stays where it was fused, and
 poses reach it through the correction of the newest keyframe (`correct`), so around the
@@ -20,6 +25,7 @@ camera the volume and the poses agree.
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Optional
 
 import numpy as np
@@ -42,42 +48,90 @@ HOLE_CELL = 2
 class Surface:
     """Fuses every `every`-th tracked view (at the tracking size, intrinsics `K`); the last
     one fused, with the fused surface's depth, is the `reference` ((frame, View), None before
-    the first)."""
+    the first). With `background`, a worker thread fuses (the module's docstring says how), on
+    `threads` threads of the engine's own that give way to the tracker's, as the mapper's do."""
 
     def __init__(self, voxel: float, truncation: float, depth_range: tuple, K: np.ndarray,
-                 every: int = 1):
+                 every: int = 1, background: bool = False, threads: Optional[int] = None):
         if every < 1:
             raise ValueError(f"a surface fuses every n-th frame, n >= 1; got {every}")
-        self._core = _core.TsdfCore(voxel, truncation, MAX_WEIGHT, *depth_range)
+        self._core = _core.TsdfCore(voxel, truncation, MAX_WEIGHT, *depth_range,
+                                    threads=threads if background else None, background=background)
         self.K, self.every = K, every
         # World (as poses now are) to the volume's world.
         self._to_volume = np.eye(4)
         # Tracked frames since the last one fused (None before the first).
         self._since: Optional[int] = None
-        self.reference: Optional[tuple[int, View]] = None
+        self._reference: Optional[tuple[int, View]] = None
+        self._worker = (ThreadPoolExecutor(1, thread_name_prefix="legslam-surface")
+                        if background else None)
+        # The frame the worker is fusing and its fusion (it alone touches the volume
+        # meanwhile); that frame's pose if a correction moved it since.
+        self._job: Optional[tuple[int, Future]] = None
+        self._job_pose: Optional[np.ndarray] = None
+        self._memory_bytes = 0
+
+    @property
+    def reference(self) -> Optional[tuple[int, View]]:
+        if self._job is not None and self._job[1].done():
+            self._wait()
+        return self._reference
 
     def add(self, frame: int, view: View, now: bool = False) -> None:
-        """Frame `frame` was tracked (`view` at its pose): fused if it is due or `now`; the
-        count to the next one starts again from it."""
-        if not now and self._since is not None and self._since + 1 < self.every:
+        """Frame `frame` was tracked (`view` at its pose): fused if it is due and the worker
+        free, or `now` (at once, after the worker's fusion); the count to the next one starts
+        again from it."""
+        busy = self._job is not None and not self._job[1].done()
+        if not now and self._since is not None and (self._since + 1 < self.every or busy):
             self._since += 1
             return
+        self._wait()
         self._since = 0
         pose = self._to_volume @ view.pose
+        if self._worker is None or now:
+            self._reference = self._fuse(frame, view, pose)
+        else:
+            self._job = (frame, self._worker.submit(self._fuse, frame, view, pose))
+            self._job_pose = None
+
+    def _fuse(self, frame: int, view: View, pose: np.ndarray) -> tuple[int, View]:
+        """Fuses `view` seen from `pose` (in the volume's world): the reference it makes."""
         self._core.integrate(view.depth, self.K, pose)
+        self._memory_bytes = self._core.memory_bytes
         h, w = view.depth.shape
         surface = self._core.raycast(self.K, w, h, pose, view.depth, HOLE_CELL)
         depth = np.where(surface > 0, surface, view.depth).astype(np.float32)
-        self.reference = (frame, View(view.pose, view.rgb, depth))
+        return frame, View(view.pose, view.rgb, depth)
+
+    def _wait(self) -> None:
+        """The worker's fusion finished (waited for), its reference taken at its frame's pose
+        now (its error raised)."""
+        if self._job is not None:
+            (_, job), self._job = self._job, None
+            frame, view = job.result()
+            if self._job_pose is not None:
+                view = View(self._job_pose, view.rgb, view.depth)
+            self._reference = (frame, view)
 
     def correct(self, correction: np.ndarray, poses: list) -> None:
         """The newest keyframe moved by `correction` (world to world): so does the way to the
-        volume; the reference takes its frame's pose in `poses` (every frame's, corrected)."""
+        volume; the reference takes its frame's pose in `poses` (every frame's, corrected), as
+        does the frame being fused once it is (the fusion is in the volume's world: it goes on)."""
+        if self._job is not None:
+            self._job_pose = poses[self._job[0]]
         self._to_volume = self._to_volume @ np.linalg.inv(correction)
-        if self.reference is not None:
-            frame, view = self.reference
-            self.reference = (frame, View(poses[frame], view.rgb, view.depth))
+        if self._reference is not None:
+            frame, view = self._reference
+            self._reference = (frame, View(poses[frame], view.rgb, view.depth))
+
+    def close(self) -> None:
+        """Waits for the worker's fusion and stops the worker."""
+        self._wait()
+        if self._worker is not None:
+            self._worker.shutdown()
 
     @property
     def memory_bytes(self) -> int:
-        return self._core.memory_bytes
+        """What the voxels took after the last fusion (without waiting for the worker's: the
+        progress line asks every frame)."""
+        return self._memory_bytes

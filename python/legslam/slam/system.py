@@ -114,7 +114,8 @@ class SLAM:
         self._tracked_after: Optional[int] = None
         self._corrections: Optional[np.ndarray] = None  # of loops closed, not applied yet
         self.surface = (Surface(c.surface_voxel, c.surface_truncation, self.depth_range, self.K_track,
-                                c.realtime_surface_every if c.mapping_thread else c.surface_every)
+                                c.realtime_surface_every if c.mapping_thread else c.surface_every,
+                                background=c.mapping_thread, threads=threads)
                         if c.surface_voxel > 0 and (c.surface_realtime or not c.mapping_thread) else None)
         self.keyframes = KeyframePolicy(c)
         self.trajectory = Trajectory()
@@ -236,8 +237,8 @@ class SLAM:
             poses = self.trajectory.poses
             return Tracked(poses[-1] if poses else np.eye(4), "init", 0.0)
         predicted = self.trajectory.predict(self._last_tracked.pose)
-        last = (self._last_tracked if self.surface is None or self.surface.reference is None
-                else self.surface.reference[1])
+        fused = None if self.surface is None else self.surface.reference
+        last = self._last_tracked if fused is None else fused[1]
         fallbacks = (last, self._last_keyframe)
         return self.tracking.track(small.rgb, small.depth, predicted,
                                    self._mapping.reference(predicted), fallbacks)
@@ -427,6 +428,8 @@ class SLAM:
             threaded.stop()
             self._mapping = self._inline_mapping()
             self._mapping.stats, self._mapping.reference_s = threaded.stats, threaded.reference_s
+        if self.surface is not None:
+            self.surface.close()
         if self._features is not None:
             self._features.drain()
             self._correct()
