@@ -1,9 +1,9 @@
 """The fused surface a frame is tracked against (legslam.slam.surface): on the built-in scene,
 fusing noisy views brings the reference depth closer to the truth than one view's; a pose-graph
 correction leaves the surface where the camera sees it; in the background (real time) a worker
-fuses what the tracker would, never queues a frame behind a busy fusion, and a correction during
-one reaches its reference; the SLAM option turns it on and off.
-The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself against
+fuses what the tracker would, never queues a frame behind a busy fusion, raises a failed fusion
+to the tracker, and a correction during one reaches its reference; the SLAM option turns it on
+and off. The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself against
 analytic scenes."""
 
 from __future__ import annotations
@@ -195,6 +195,20 @@ def test_a_correction_during_a_fusion_reaches_its_reference(small_synthetic):
     view = frames[6][0]
     surface.add(6, View(C @ view.pose, view.rgb, view.depth))
     assert np.abs(settled(surface, 6).depth - fused(plain, 6, view).depth).max() < 1e-3
+    surface.close()
+
+
+def test_a_failed_fusion_in_the_background_is_raised_to_the_tracker(small_synthetic):
+    frames = views(small_synthetic, noise=0.005)
+    surface = Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], background=True)
+    view = frames[0][0]
+    surface.add(0, View(np.full((4, 4), np.nan), view.rgb, view.depth))
+    with pytest.raises(ValueError, match="pose"):
+        settled(surface, 0)
+    # The worker goes on with the next frame, and the failed one left the volume as it was.
+    surface.add(1, frames[1][0])
+    fresh = Surface(0.01, 0.04, (0.1, 10.0), frames[0][2])
+    assert np.array_equal(settled(surface, 1).depth, fused(fresh, 1, frames[1][0]).depth)
     surface.close()
 
 
