@@ -3,8 +3,8 @@ fusing noisy views brings the reference depth closer to the truth than one view'
 correction leaves the surface where the camera sees it; in the background (real time) a worker
 fuses what the tracker would, never queues a frame behind a busy fusion, raises a failed fusion
 to the tracker, and a correction during one reaches its reference; the SLAM option turns it on
-and off. The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself against
-analytic scenes."""
+and off. The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself
+against analytic scenes."""
 
 from __future__ import annotations
 
