@@ -316,15 +316,16 @@ class SLAMConfig:
     #: frame is fused by a worker thread (its engine threads at the mapping threads' lowered
     #: priority; a frame due while one is being fused is not queued) and the frames between are
     #: tracked against the last one fused. Paced, on against off (2026-12-07, one run each; off
-    #: on the renders: two runs that morning): 7-Scenes ATE 3.69 against 4.26 cm, 25.06 against 25.51 dB every 5th frame (the
-    #: synchronous map 24.92), 2 frames late either way; the 400-frame Replica render with
-    #: Kinect-like noise 0.47 against 0.54 cm, 35.67 against 35.29-35.45 dB, the same render
-    #: exact 0.46 against 0.45 cm, 35.94 against 35.74-36.18 dB, a room-sized Replica stretch
-    #: (fusion twice 7-Scenes' cost) 0.53 against 0.52 cm, 34.52 against 34.68 dB; none late.
-    #: Repeated on: 7-Scenes 3.72 cm, 24.97 dB, 5 late; the Kinect-noise render 0.48 cm, 35.27
-    #: dB. Fused on the tracking thread it had put 36-69 frames late. Every 2nd frame: 7-Scenes
-    #: 3.71 cm, 25.23 dB, 14 late; the Kinect-noise render 0.47 cm, 34.79 dB. Every frame:
-    #: 7-Scenes 3.84 cm, 24.99 dB, the mapper's live iterations halved, 182 late.
+    #: on the renders: two runs that morning): 7-Scenes ATE 3.69 against 4.26 cm, 25.06 against
+    #: 25.51 dB every 5th frame (the synchronous map 24.92), 2 frames late either way; the
+    #: 400-frame Replica render with Kinect-like noise 0.47 against 0.54 cm, 35.67 against
+    #: 35.29-35.45 dB, the same render exact 0.46 against 0.45 cm, 35.94 against 35.74-36.18 dB,
+    #: none late; a room-sized Replica stretch (fusion twice 7-Scenes' cost) 0.53 against 0.52
+    #: cm, 34.52 against 34.68 dB, 1 late against none. Repeated on: 7-Scenes 3.72 cm, 24.97
+    #: dB, 5 late; the Kinect-noise render 0.48 cm, 35.27 dB. Fused on the tracking thread it
+    #: had put 36-69 frames late. Every 2nd frame: 7-Scenes 3.71 cm, 25.23 dB, 14 late; the
+    #: Kinect-noise render 0.47 cm, 34.79 dB. Every frame: 7-Scenes 3.84 cm, 24.99 dB, the
+    #: mapper's live iterations halved, 182 late.
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
     surface_realtime: bool = True
