@@ -325,7 +325,10 @@ class SLAMConfig:
     #: dB, 5 late; the Kinect-noise render 0.48 cm, 35.27 dB. Fused on the tracking thread it
     #: had put 36-69 frames late. Every 2nd frame: 7-Scenes 3.71 cm, 25.23 dB, 14 late; the
     #: Kinect-noise render 0.47 cm, 34.79 dB. Every frame: 7-Scenes 3.84 cm, 24.99 dB, the
-    #: mapper's live iterations halved, 182 late.
+    #: mapper's live iterations halved, 182 late. What synchronous runs gain over every 3rd is
+    #: the ray-cast from each frame's pose, not the fusion; ray-casting every frame in the
+    #: worker (fusing every 3rd) gave 3.77 cm, 261 late, against 3.77 cm, 21 late (README:
+    #: *What the rest of the 7-Scenes gap is*).
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
     surface_realtime: bool = True
