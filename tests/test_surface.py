@@ -1,7 +1,8 @@
 """The fused surface a frame is tracked against (legslam.slam.surface): on the built-in scene,
-fusing noisy views brings the reference depth closer to the truth than one view's; a pose-graph
+fusing noisy views brings the reference depth closer to the truth than one view's; every frame
+is ray-cast from its pose, every n-th fused first; a pose-graph
 correction leaves the surface where the camera sees it; in the background (real time) a worker
-fuses what the tracker would, never queues a frame behind a busy fusion, raises a failed fusion
+fuses what the tracker would, never queues a frame behind a busy worker, raises a failed fusion
 to the tracker, and a correction during one reaches its reference; the SLAM option turns it on
 and off. The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself
 against analytic scenes."""
@@ -17,7 +18,7 @@ import pytest
 from legslam import _core
 from legslam.datasets import open as open_dataset
 from legslam.slam import SLAM, SLAMConfig
-from legslam.slam.surface import Surface
+from legslam.slam.surface import HOLE_CELL, Surface
 from legslam.slam.trajectory import View
 
 
@@ -81,24 +82,25 @@ def test_a_correction_leaves_the_surface_where_the_camera_sees_it(small_syntheti
     assert np.abs(stale - expected).max() > 0.01
 
 
-def test_every_nth_frame_is_fused_and_the_frames_between_keep_its_reference(small_synthetic):
+def test_every_nth_frame_is_fused_and_every_frame_is_ray_cast_from_its_pose(small_synthetic):
     frames = views(small_synthetic, noise=0.005)
-    every, one = (Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=n) for n in (3, 1))
-    refs = []
-    for i, (view, _, _) in enumerate(frames[:7]):
-        every.add(i, view)
-        refs.append(every.reference[0])
-        if i % 3 == 0:
-            # A frame fused is what it is to a surface that fuses every frame it was given.
-            one.add(i, view)
-            assert np.array_equal(every.reference[1].depth, one.reference[1].depth)
-            assert every.reference[1].rgb is view.rgb
-    assert refs == [0, 0, 0, 3, 3, 3, 6]
-    # A relocalised frame at once, and the count starts again from it.
-    for i, (view, _, _) in enumerate(frames[7:12], start=7):
-        every.add(i, view, now=i == 8)
-        refs.append(every.reference[0])
-    assert refs[7:] == [6, 8, 8, 8, 11]
+    K = frames[0][2]
+    surface = Surface(0.01, 0.04, (0.1, 10.0), K, every=3)
+    gate = surface._core = Gated(surface._core)
+    gate.open.set()
+    # What the volume holds: the frames fused so far, in a volume of its own.
+    volume = _core.TsdfCore(0.01, 0.04, 64.0, 0.1, 10.0)
+    h, w = frames[0][0].depth.shape
+    for i, (view, _, _) in enumerate(frames[:12]):
+        surface.add(i, view, now=i == 8)
+        # Frames 0, 3, 6 fused; 8 relocalised (at once), and the count starts again from it.
+        if i in (0, 3, 6, 8, 11):
+            volume.integrate(view.depth, K, view.pose)
+        cast = volume.raycast(K, w, h, view.pose, view.depth, HOLE_CELL)
+        ref = surface.reference
+        assert ref[0] == i and ref[1].rgb is view.rgb and ref[1].pose is view.pose
+        assert np.array_equal(ref[1].depth, np.where(cast > 0, cast, view.depth))
+    assert gate.fused == 5
     with pytest.raises(ValueError, match="every"):
         Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=0)
 
@@ -113,10 +115,10 @@ def settled(surface: Surface, frame: int) -> View:
 
 
 class Gated:
-    """A volume whose fusions wait until `open` is set; counts them."""
+    """A volume whose fusions wait until `open` is set; counts them and its ray-casts."""
 
     def __init__(self, core):
-        self.core, self.open, self.fused = core, threading.Event(), 0
+        self.core, self.open, self.fused, self.cast = core, threading.Event(), 0, 0
 
     def integrate(self, *args):
         assert self.open.wait(30), "the test never opened the gate"
@@ -124,6 +126,7 @@ class Gated:
         return self.core.integrate(*args)
 
     def raycast(self, *args):
+        self.cast += 1
         return self.core.raycast(*args)
 
     @property
@@ -146,25 +149,23 @@ def test_a_background_surface_fuses_what_the_tracker_would(small_synthetic):
     assert background.memory_bytes == inline.memory_bytes
 
 
-def test_a_frame_due_while_the_worker_is_busy_is_not_queued(small_synthetic):
+def test_a_frame_that_comes_while_the_worker_is_busy_is_not_queued(small_synthetic):
     frames = views(small_synthetic, noise=0.005)
     surface = Surface(0.01, 0.04, (0.1, 10.0), frames[0][2], every=2, background=True)
     gate = surface._core = Gated(surface._core)
     surface.add(0, frames[0][0])
-    # Frames 1 and 3 are not due (every 2nd), frame 2 is but the worker is still busy.
+    # Frames 1-3 come while frame 0's fusion holds the worker: passed over.
     for i in (1, 2, 3):
         surface.add(i, frames[i][0])
         assert surface.reference is None
     gate.open.set()
     settled(surface, 0)
-    # The frame after the busy one is due at once; then every 2nd again.
-    surface.add(4, frames[4][0])
-    settled(surface, 4)
-    surface.add(5, frames[5][0])
-    assert surface.reference[0] == 4
-    surface.add(6, frames[6][0])
-    settled(surface, 6)
-    assert gate.fused == 3
+    # The next frame is due a fusion at once (frame 2's was); then every 2nd, and the frames
+    # between are ray-cast only.
+    for i in (4, 5, 6):
+        surface.add(i, frames[i][0])
+        settled(surface, i)
+    assert (gate.fused, gate.cast) == (3, 4)
     surface.close()
 
 

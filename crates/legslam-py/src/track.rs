@@ -309,11 +309,10 @@ struct PyTsdf {
 
 #[pymethods]
 impl PyTsdf {
-    /// `threads`, `background`: a pool of its own, as `MapperCore`'s (a fusion beside the
-    /// tracker in real time).
+    /// `threads`: a pool of its own, as `MapperCore`'s (a fusion beside the tracker in real
+    /// time), at the tracker's priority: the tracker waits for its ray-casts.
     #[new]
-    #[pyo3(signature = (voxel, truncation, max_weight, min_depth, max_depth, threads=None, background=false))]
-    #[allow(clippy::too_many_arguments)] // Python's keyword arguments
+    #[pyo3(signature = (voxel, truncation, max_weight, min_depth, max_depth, threads=None))]
     fn new(
         py: Python<'_>,
         voxel: f64,
@@ -322,7 +321,6 @@ impl PyTsdf {
         min_depth: f64,
         max_depth: f64,
         threads: Option<usize>,
-        background: bool,
     ) -> PyResult<Self> {
         let cfg = TsdfConfig {
             voxel,
@@ -332,7 +330,7 @@ impl PyTsdf {
             max_depth,
         };
         let inner = engine_call(py, || Tsdf::new(cfg))?;
-        let pool = pool::build(threads, "legslam-surface", background)?;
+        let pool = pool::build(threads, "legslam-surface", false)?;
         Ok(PyTsdf { inner, pool })
     }
 

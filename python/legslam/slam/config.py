@@ -312,23 +312,24 @@ class SLAMConfig:
     #: fps in one hour); with the first version, a 400-frame Replica render with Kinect-like
     #: depth noise 0.48 against 0.54 cm, 35.62 against 35.02 dB, the same render exact 0.47
     #: against 0.46 cm, 35.84 against 35.90 dB (README: *Tracking against the fused surface*).
-    #: `surface_realtime`: in real time too, where every `realtime_surface_every`-th tracked
-    #: frame is fused by a worker thread (its engine threads at the mapping threads' lowered
-    #: priority; a frame due while one is being fused is not queued) and the frames between are
-    #: tracked against the last one fused. Paced, on against off (2026-12-07, one run each; off
-    #: on the renders: two runs that morning): 7-Scenes ATE 3.69 against 4.26 cm, 25.06 against
-    #: 25.51 dB every 5th frame (the synchronous map 24.92), 2 frames late either way; the
-    #: 400-frame Replica render with Kinect-like noise 0.47 against 0.54 cm, 35.67 against
-    #: 35.29-35.45 dB, the same render exact 0.46 against 0.45 cm, 35.94 against 35.74-36.18 dB,
-    #: none late; a room-sized Replica stretch (fusion twice 7-Scenes' cost) 0.53 against 0.52
-    #: cm, 34.52 against 34.68 dB, 1 late against none. Repeated on: 7-Scenes 3.72 cm, 24.97
-    #: dB, 5 late; the Kinect-noise render 0.48 cm, 35.27 dB. Fused on the tracking thread it
-    #: had put 36-69 frames late. Every 2nd frame: 7-Scenes 3.71 cm, 25.23 dB, 14 late; the
-    #: Kinect-noise render 0.47 cm, 34.79 dB. Every frame: 7-Scenes 3.84 cm, 24.99 dB, the
-    #: mapper's live iterations halved, 182 late. What synchronous runs gain over every 3rd is
-    #: the ray-cast from each frame's pose, not the fusion; ray-casting every frame in the
-    #: worker (fusing every 3rd) gave 3.77 cm, 261 late, against 3.77 cm, 21 late (README:
-    #: *What the rest of the 7-Scenes gap is*).
+    #: `surface_realtime`: in real time too. A worker thread ray-casts the surface from each
+    #: tracked frame it is free for (a frame that comes while it is busy is passed over, not
+    #: queued) and fuses every `realtime_surface_every`-th of those first; synchronous runs
+    #: ray-cast every frame and fuse every `surface_every`-th. What a frame gains is the
+    #: ray-cast from its predecessor's own pose, not the fusion (README: *What the rest of the
+    #: 7-Scenes gap is*). Paced 7-Scenes (2026-12-07 afternoon): 3.36 (through a /tmp patch),
+    #: 3.49 and 3.65 cm against 3.77 and 3.79 fusing and ray-casting every 3rd frame, the map
+    #: 25.15, 25.06 and 24.99 against 24.92 and 25.06 dB; the 3.65 cm run had a test suite beside
+    #: it for a while and put 318 frames late, the others 4 and 7 (21 and 22). The worker's
+    #: engine threads run at the tracker's priority: at the mapping threads' lowered one the
+    #: reference was 4.8 frames old on average (3.6 ray-casting every free frame; at the
+    #: tracker's priority 2.4), and 7-Scenes stayed at 3.72 cm. Replica renders, 400 frames:
+    #: Kinect-like noise 0.48 cm, 35.35 dB; exact 0.47 cm, 35.50 dB (the morning's, fusing and
+    #: ray-casting every 3rd: 0.47-0.48 cm, 35.27-35.67 dB and 0.46 cm, 35.94 dB). Before it
+    #: (fusing every 3rd, the frames between against the last fused), on against off: 7-Scenes
+    #: 3.69 against 4.26 cm, the Kinect-noise render 0.47 against 0.54 cm, the exact one 0.46
+    #: against 0.45 cm. Fusing every 2nd or every frame made more frames late for no better
+    #: trajectory.
     surface_voxel: float = 0.01
     surface_truncation: float = 0.04
     surface_realtime: bool = True
