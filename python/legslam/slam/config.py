@@ -318,10 +318,10 @@ class SLAMConfig:
     #: ray-cast every frame and fuse every `surface_every`-th. What a frame gains is the
     #: ray-cast from its predecessor's own pose, not the fusion (README: *What the rest of the
     #: 7-Scenes gap is*). Paced 7-Scenes (2026-12-07 afternoon): 3.36 (through a /tmp patch),
-    #: 3.49, 3.65 and 3.67 cm against 3.77 and 3.79 fusing and ray-casting every 3rd frame, the
-    #: map 25.15, 25.06, 24.99 and 25.16 against 24.92 and 25.06 dB; the 3.65 cm run had a test
-    #: suite beside it for a while and put 318 frames late, the others 4, 7 and 2 (21 and 22,
-    #: and 2-22 in the day's other runs fusing every 3rd). The worker's
+    #: 3.49, 3.65, 3.67 and 3.46 cm against 3.77 and 3.79 fusing and ray-casting every 3rd
+    #: frame, the map 25.15, 25.06, 24.99, 25.16 and 24.84 against 24.92 and 25.06 dB; the 3.65
+    #: cm run had a test suite beside it for a while and put 318 frames late, the others 4, 7, 2
+    #: and 23 (21 and 22, and 2-22 in the day's other runs fusing every 3rd). The worker's
     #: engine threads run at the tracker's priority: at the mapping threads' lowered one the
     #: reference was 4.8 frames old on average (3.6 ray-casting every free frame; at the
     #: tracker's priority 2.4), and 7-Scenes stayed at 3.72 cm. Replica renders, 400 frames:
