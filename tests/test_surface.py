@@ -1,11 +1,11 @@
 """The fused surface a frame is tracked against (legslam.slam.surface): on the built-in scene,
 fusing noisy views brings the reference depth closer to the truth than one view's; every frame
-is ray-cast from its pose, every n-th fused first; a pose-graph
-correction leaves the surface where the camera sees it; in the background (real time) a worker
-fuses what the tracker would, never queues a frame behind a busy worker, raises a failed fusion
-to the tracker, and a correction during one reaches its reference; the SLAM option turns it on
-and off. The engine's tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself
-against analytic scenes."""
+is ray-cast from its pose, every n-th fused first; a pose-graph correction leaves the surface
+where the camera sees it; in the background (real time) a worker fuses what the tracker would,
+never queues a frame behind a busy worker, raises a failed fusion to the tracker, and a
+correction during one reaches its reference; the SLAM option turns it on and off. The engine's
+tests (crates/legslam-core/tests/track_tsdf.rs) check the volume itself against analytic
+scenes."""
 
 from __future__ import annotations
 
@@ -106,10 +106,10 @@ def test_every_nth_frame_is_fused_and_every_frame_is_ray_cast_from_its_pose(smal
 
 
 def settled(surface: Surface, frame: int) -> View:
-    """The reference of `frame` once the background worker has fused it."""
+    """The reference of `frame` once the background worker has made it."""
     deadline = time.monotonic() + 30
     while surface.reference is None or surface.reference[0] != frame:
-        assert time.monotonic() < deadline, f"frame {frame} was not fused in 30 s"
+        assert time.monotonic() < deadline, f"frame {frame} was not ray-cast in 30 s"
         time.sleep(0.001)
     return surface.reference[1]
 

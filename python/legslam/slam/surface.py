@@ -70,8 +70,8 @@ class Surface:
         self._reference: Optional[tuple[int, View]] = None
         self._worker = (ThreadPoolExecutor(1, thread_name_prefix="legslam-surface")
                         if background else None)
-        # The frame the worker is fusing and its fusion (it alone touches the volume
-        # meanwhile); that frame's pose if a correction moved it since.
+        # The frame the worker is on and its job (fusing and ray-casting it: the worker alone
+        # touches the volume meanwhile); that frame's pose if a correction moved it since.
         self._job: Optional[tuple[int, Future]] = None
         self._job_pose: Optional[np.ndarray] = None
         self._memory_bytes = 0
@@ -111,7 +111,7 @@ class Surface:
         return frame, View(view.pose, view.rgb, depth)
 
     def _wait(self) -> None:
-        """The worker's fusion finished (waited for), its reference taken at its frame's pose
+        """The worker's job finished (waited for), its reference taken at its frame's pose
         now (its error raised)."""
         if self._job is not None:
             (_, job), self._job = self._job, None
@@ -132,7 +132,7 @@ class Surface:
             self._reference = (frame, View(poses[frame], view.rgb, view.depth))
 
     def close(self) -> None:
-        """Waits for the worker's fusion and stops the worker."""
+        """Waits for the worker's job and stops the worker."""
         self._wait()
         if self._worker is not None:
             self._worker.shutdown()
