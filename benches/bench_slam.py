@@ -25,6 +25,7 @@ import os
 import resource
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -119,6 +120,8 @@ def main() -> int:
 
     print("\n| | value |\n|---|---|")
     print(f"| frames / keyframes / lost | {m['frames']} / {m['keyframes']} / {m['lost_frames']} |")
+    reasons = Counter(m.get("keyframe_reasons", []))
+    print("| keyframes made for: " + ", ".join(f"{r} {n}" for r, n in reasons.items()) + " |")
     print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {m['ate_rmse_cm']:.2f} cm |")
     print(f"| ATE RMSE, tracker frame-to-frame odometry | {100 * odo_ate:.2f} cm ({odo_ms:.1f} ms/frame median) |")
     print(f"| frame-to-frame RPE median, SLAM / odometry | {rpe_slam:.3f} / {rpe_odo:.3f} cm |")

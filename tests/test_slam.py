@@ -70,6 +70,10 @@ def test_outputs_are_written(mapped):
     assert its["final"] == cfg.final_iters + round(cfg.final_iters_per_frame * 24), its
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["gaussians"] > 1000 and metrics["map_full_at_frame"] is None
+    # Why each keyframe was made, one reason per keyframe frame; the first starts the map.
+    reasons, frames = metrics["keyframe_reasons"], metrics["keyframe_frames"]
+    assert len(reasons) == len(frames) == metrics["keyframes"] and frames[0] == 0
+    assert reasons[0] == "first" and set(reasons[1:]) <= {"moved", "turned", "coverage", "gap"}
     assert (out / "map.ply").stat().st_size > 1000
     assert any((out / "renders").glob("*_input_render.png"))
 
@@ -458,6 +462,34 @@ def test_the_inline_reference_renders_colour_only_when_asked_and_never_a_changed
     inline.after_frame(pose, keyframe=True)
     with pytest.raises(RuntimeError, match="map changed"):
         stale.color
+
+
+def test_the_keyframe_policy_says_why_a_frame_becomes_a_keyframe():
+    # Each threshold alone, and the first that holds when several do.
+    from legslam.slam.keyframes import REASONS, KeyframePolicy
+    from legslam.slam.trajectory import KeyframeView
+
+    c = SLAMConfig()
+    policy = KeyframePolicy(c)
+    last = KeyframeView(np.eye(4), None, None, frame=10)
+
+    def why(frame=11, dx=0.0, turn_deg=0.0, coverage=1.0, counts=True, last=last, empty=False):
+        pose = np.eye(4)
+        pose[0, 3] = dx
+        a = np.radians(turn_deg)
+        pose[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        return policy.wants(frame, pose, coverage, last, map_empty=empty, coverage_counts=counts)
+
+    assert why() is None
+    assert why(last=None) == why(empty=True) == "first"
+    assert why(dx=2 * c.keyframe_translation) == "moved"
+    assert why(turn_deg=2 * c.keyframe_rotation) == "turned"
+    assert why(coverage=c.keyframe_overlap / 2) == "coverage"
+    assert why(coverage=c.keyframe_overlap / 2, counts=False) is None
+    assert why(frame=10 + c.keyframe_max_gap) == "gap"
+    assert why(dx=1.0, turn_deg=90.0, coverage=0.0, frame=100) == "moved"
+    assert why(turn_deg=90.0, coverage=0.0, frame=100) == "turned"
+    assert set(REASONS) == {"first", "moved", "turned", "coverage", "gap"}
 
 
 def test_real_time_makes_keyframes_no_closer_than_its_minimum_gap():

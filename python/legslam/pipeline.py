@@ -131,6 +131,7 @@ def _run(seq, out_dir, config: SLAMConfig, progress, evaluate_every: int, encode
     renders.mkdir(exist_ok=True)
     metrics = {"keyframes": len(slam.keyframe_frames),
                "keyframe_frames": list(slam.keyframe_frames),
+               "keyframe_reasons": list(slam.keyframe_reasons),
                "lost_frames": int(sum(s == "lost" for s in slam.states)),
                "frames_without_depth": slam.frames_without_depth,
                "frames_depth_out_of_range": slam.frames_depth_out_of_range,

@@ -120,6 +120,8 @@ class SLAM:
         self.keyframes = KeyframePolicy(c)
         self.trajectory = Trajectory()
         self.keyframe_frames: list[int] = []
+        #: Why each keyframe was made (`keyframes.REASONS`), as `keyframe_frames`.
+        self.keyframe_reasons: list[str] = []
         self._last_keyframe: Optional[KeyframeView] = None
         self._last_tracked: Optional[View] = None
         self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch,
@@ -259,14 +261,16 @@ class SLAM:
             return False
         if self.relocaliser is not None:
             self.relocaliser.tracked()
-        keyframe = self.keyframes.wants(
+        why = self.keyframes.wants(
             i, tracked.pose, tracked.coverage, self._last_keyframe, self._mapping.empty,
             coverage_counts=self._mapping.keeps_up())
+        keyframe = why is not None
         if keyframe:
             kf_id = self._mapping.add_keyframe(rgb.astype(np.float32) / 255.0, depth, self.K,
                                                tracked.pose)
             self._last_keyframe = KeyframeView(tracked.pose, small.rgb, small.depth, frame=i)
             self.keyframe_frames.append(i)
+            self.keyframe_reasons.append(why)
             encoded = self._features is not None and self._encodes(len(self.keyframe_frames) - 1)
             self._keyframe_made(kf_id, self._last_keyframe, encoded)
             if encoded:
