@@ -161,9 +161,10 @@ class SLAMConfig:
     #: New keyframe when the camera moved this far (m) or turned this much (degrees) since the
     #: last one, or the map covers less than `keyframe_overlap` of the pixels where the frame
     #: measured depth, or `keyframe_max_gap` frames passed. With a mapping thread the coverage
-    #: counts only while the map keeps up, seldom on 7-Scenes: synchronous 7-Scenes without
-    #: coverage keyframes gave 3.29 cm ATE, 76 keyframes against 90 and 2.94 cm, half of real
-    #: time's gap (README, *What the rest of the 7-Scenes gap is*).
+    #: counts only while the map keeps up: paced 7-Scenes made none of its 76 keyframes for it
+    #: (two runs; `keyframe_reasons` in metrics.json), the synchronous run 32 of its 90, and
+    #: without them 76 and 3.29 against 2.94 cm ATE, half of real time's gap (README, *What
+    #: the rest of the 7-Scenes gap is*).
     keyframe_translation: float = 0.1
     keyframe_rotation: float = 10.0
     keyframe_overlap: float = 0.9
