@@ -122,6 +122,10 @@ def main() -> int:
     print(f"| frames / keyframes / lost | {m['frames']} / {m['keyframes']} / {m['lost_frames']} |")
     reasons = Counter(m.get("keyframe_reasons", []))
     print("| keyframes made for: " + ", ".join(f"{r} {n}" for r, n in reasons.items()) + " |")
+    age = m.get("surface_reference_age")
+    if age and age["mean"] is not None:
+        counts = ", ".join(f"{a}: {n}" for a, n in age["frames"].items())
+        print(f"| frames tracked against a fused-surface reference this many frames old | mean {age['mean']:.2f} ({counts}) |")
     print(f"| ATE RMSE, SLAM (all frames, SE(3)-aligned) | {m['ate_rmse_cm']:.2f} cm |")
     print(f"| ATE RMSE, tracker frame-to-frame odometry | {100 * odo_ate:.2f} cm ({odo_ms:.1f} ms/frame median) |")
     print(f"| frame-to-frame RPE median, SLAM / odometry | {rpe_slam:.3f} / {rpe_odo:.3f} cm |")

@@ -74,6 +74,8 @@ def test_outputs_are_written(mapped):
     reasons, frames = metrics["keyframe_reasons"], metrics["keyframe_frames"]
     assert len(reasons) == len(frames) == metrics["keyframes"] and frames[0] == 0
     assert reasons[0] == "first" and set(reasons[1:]) <= {"moved", "turned", "coverage", "gap"}
+    # Synchronous: every frame after the first is tracked against the surface from the one before.
+    assert metrics["surface_reference_age"] == {"mean": 1.0, "frames": {"1": 23}}
     assert (out / "map.ply").stat().st_size > 1000
     assert any((out / "renders").glob("*_input_render.png"))
 
@@ -564,6 +566,12 @@ def test_mapping_thread_tracks_and_maps_while_the_main_thread_tracks(mapped, sce
     assert psnr_of(threaded) > psnr_of(unmapped) + 2.0, (psnr_of(threaded), psnr_of(unmapped))
     assert slam.reference_render_s > 0
     assert threaded["timings"]["mapping.reference_render"]["total_s"] > 0
+    # The worker's references are a frame old or more, never newer; a frame may come before it
+    # has finished the first.
+    ages = m["surface_reference_age"]["frames"]
+    assert min(int(a) for a in ages) >= 1 and 0 < sum(ages.values()) <= 23, ages
+    assert m["surface_reference_age"]["mean"] == pytest.approx(
+        sum(int(a) * n for a, n in ages.items()) / sum(ages.values()), abs=1e-3)
 
 
 def test_mapping_thread_owns_the_map_until_finish_and_restarts_an_empty_map(scene):

@@ -122,6 +122,9 @@ class SLAM:
         self.keyframe_frames: list[int] = []
         #: Why each keyframe was made (`keyframes.REASONS`), as `keyframe_frames`.
         self.keyframe_reasons: list[str] = []
+        #: Per frame tracked against the fused surface: how many frames old its reference was
+        #: (1: the frame before's; more where the real-time worker was still busy).
+        self.reference_ages: list[int] = []
         self._last_keyframe: Optional[KeyframeView] = None
         self._last_tracked: Optional[View] = None
         self._mapping = (ThreadedMapping(self.mapper, self.K_track, self.track_size, c.mapping_batch,
@@ -240,6 +243,8 @@ class SLAM:
             return Tracked(poses[-1] if poses else np.eye(4), "init", 0.0)
         predicted = self.trajectory.predict(self._last_tracked.pose)
         fused = None if self.surface is None else self.surface.reference
+        if fused is not None:
+            self.reference_ages.append(len(self.trajectory) - fused[0])
         last = self._last_tracked if fused is None else fused[1]
         fallbacks = (last, self._last_keyframe)
         return self.tracking.track(small.rgb, small.depth, predicted,
@@ -369,8 +374,9 @@ class SLAM:
 
     def trajectory_events(self) -> dict:
         """For metrics.json: the relocalisations, the loops closed and the loop edges rejected
-        (frame, keyframes, correction size), and what the keyframes' places and the fused
-        surface take in memory."""
+        (frame, keyframes, correction size), what the keyframes' places and the fused surface
+        take in memory, and how old the fused surface's references were (`frames`: how many
+        frames were tracked against a reference of each age)."""
         out = {}
         if self.relocaliser is not None:
             out["relocalisations"] = [e.as_dict() for e in self.relocaliser.events]
@@ -384,6 +390,10 @@ class SLAM:
             out["place_memory_mb"] = round(self.places.nbytes / 2 ** 20, 2)
         if self.surface is not None:
             out["surface_memory_mb"] = round(self.surface.memory_bytes / 2 ** 20, 2)
+            ages, counts = np.unique(self.reference_ages, return_counts=True)
+            out["surface_reference_age"] = {
+                "mean": round(float(np.mean(self.reference_ages)), 3) if self.reference_ages else None,
+                "frames": {str(a): int(n) for a, n in zip(ages, counts)}}
         return out
 
     @property
