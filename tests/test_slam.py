@@ -3,6 +3,7 @@ or mapper cannot meet: each is compared against a run with that part disabled.""
 
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -343,7 +344,8 @@ def test_final_learning_rates_fall_by_the_configured_factor(scene, monkeypatch):
     monkeypatch.setattr(slam_module, "FINAL_BATCH", 2)
     for start, geometry in ((1.0, 1.0), (3.0, 4.5)):
         timed = scales(12, final_iters=0, final_time=3.0, mapping_thread=True, final_lr_factor=0.1,
-                       realtime_lr_scale=start, realtime_geometry_lr_scale=geometry)
+                       realtime_lr_scale=start, realtime_geometry_lr_scale=geometry,
+                       realtime_iters_floor=0.0)
         assert len(timed) >= 2
         for group in groups:
             first = geometry if group in ("means", "log_scales", "quats") else start
@@ -404,9 +406,9 @@ def test_synchronous_runs_spend_each_frames_iterations_at_the_end(scene):
     assert final_iterations(3, final_iters=10, final_iters_per_frame=2.0) == 16
     assert final_iterations(5, final_iters=10, final_iters_per_frame=2.0) == 20
     assert final_iterations(5, final_iters=10, final_iters_per_frame=0.0) == 10
-    # Real time spends a share of the time instead (here none).
+    # Real time spends a share of the time instead (here none), with no floor.
     assert final_iterations(5, final_iters=10, final_iters_per_frame=2.0, mapping_thread=True,
-                            final_time=0.0) == 10
+                            final_time=0.0, realtime_iters_floor=0.0) == 10
     # A run cut short trains nothing.
     slam = SLAM(SLAMConfig(features=False, final_iters_per_frame=2.0), seq[0].K, 160, 120)
     slam.step(seq[0].rgb, seq[0].depth)
@@ -518,11 +520,40 @@ def test_real_time_makes_keyframes_no_closer_than_its_minimum_gap():
         SLAMConfig(realtime_keyframe_min_gap=0)
 
 
+def test_real_time_trains_on_until_its_map_has_had_a_share_of_a_synchronous_runs_iterations(scene):
+    seq = open_dataset(scene)
+
+    def iterations(floor, frames=6):
+        cfg = SLAMConfig(features=False, mapping_thread=True, final_time=0.0, final_iters=10,
+                         map_iters_keyframe=30, map_iters_frame=1, final_iters_per_frame=2.0,
+                         realtime_iters_floor=floor)
+        slam = SLAM(cfg, seq[0].K, 160, 120)
+        for i in range(frames):
+            slam.step(seq[i].rgb, seq[i].depth)
+        slam.mapper = RecordingMapper(slam.mapper)
+        slam.finish()
+        live = sum(s.iterations for s in slam.mapping_stats) - sum(slam.mapper.iterations)
+        keyframes = len(slam.keyframe_frames)
+        synchronous = 30 * keyframes + 1 * (frames - keyframes) + 10 + 2 * frames
+        return live, sum(slam.mapper.iterations), synchronous
+
+    for floor in (1.0, 2.5):
+        live, final, synchronous = iterations(floor)
+        # final_iters at least, and as many more as bring the whole run to the floor.
+        assert final == max(10, math.ceil(floor * synchronous) - live), (floor, live, final, synchronous)
+        assert live + final >= floor * synchronous
+    live, final, _ = iterations(0.0)
+    assert final == 10
+    with pytest.raises(ValueError, match="realtime_iters_floor"):
+        SLAMConfig(realtime_iters_floor=-1.0)
+
+
 def test_real_time_trains_on_after_the_frames_for_its_share_of_the_run(scene):
     seq = open_dataset(scene)
 
     def finished(final_iters=0, **options):
-        slam = SLAM(SLAMConfig(features=False, final_iters=final_iters, **options), seq[0].K, 160, 120)
+        slam = SLAM(SLAMConfig(features=False, final_iters=final_iters, realtime_iters_floor=0.0,
+                               **options), seq[0].K, 160, 120)
         before = time.perf_counter()  # the run's clock starts between these two
         slam.step(seq[0].rgb, seq[0].depth)
         after = time.perf_counter()

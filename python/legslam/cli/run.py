@@ -54,9 +54,10 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "the surface it tracks against from each frame a worker thread is free "
                         f"for and fusing one in {d.realtime_surface_every} into it, and at "
                         f"the end trains on for {d.final_time:g} times as long as the frames took "
+                        "and until the map has had a synchronous run's iterations "
                         "(config: mapping_thread, realtime_lr_scale, realtime_geometry_lr_scale, "
                         "realtime_keyframe_min_gap, realtime_feature_every, surface_realtime, "
-                        "realtime_surface_every, final_time)")
+                        "realtime_surface_every, final_time, realtime_iters_floor)")
     p.add_argument("--pace", type=float, nargs="?", const=1.0, default=None, metavar="SPEED",
                    help="play the recording as its camera delivered it: no frame before its "
                         "timestamp says (SPEED times the recorded speed, default 1), so that "
@@ -64,8 +65,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "behind (without: frames as fast as SLAM takes them)")
     p.add_argument("--final-iters", type=int, default=None, metavar="N",
                    help="mapping iterations over all keyframes once the frames have ended "
-                        "(default 100, and synchronous runs 0.4 more per frame; more give a "
-                        "sharper map: config final_iters, final_iters_per_frame)")
+                        f"(default {d.final_iters}, and synchronous runs {d.final_iters_per_frame:g} "
+                        "more per frame; more give a sharper map: config final_iters, "
+                        "final_iters_per_frame)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--viewer", choices=["rerun"], default=None,
                    help="live view: frames, poses, trajectory, Gaussian centres, renders and "

@@ -16,6 +16,7 @@ with the corrected keyframes); at the end, the final mapping iterations.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import time
 from contextlib import contextmanager
@@ -430,8 +431,8 @@ class SLAM:
     def finish(self, train: bool = True, progress=None) -> None:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
         mapping iterations (unless `train` is false: a run cut short keeps the map it has):
-        `final_iters`, plus `final_iters_per_frame` a frame when synchronous or as long as
-        `final_time` allows in real time, each group's learning rate annealed from where the
+        `final_iters`, plus `final_iters_per_frame` a frame when synchronous or, in real time, as
+        long as `final_time` allows and as many as `realtime_iters_floor` asks, each group's learning rate annealed from where the
         frames left it (the mapper's; in real time, its real-time scale of it) to
         `final_lr_factor` times that; in batches, calling `progress(done, total)` after each
         (total None while a real-time run trains on for `final_time`, then (done, done) once);
@@ -448,8 +449,13 @@ class SLAM:
             self._features.drain()
             self._correct()
         # Synchronous: the iterations deferred from the frames, too.
-        deferred = 0 if in_thread else round(self.config.final_iters_per_frame * len(self.trajectory))
-        total = self.config.final_iters + deferred if train else 0
+        c = self.config
+        deferred = 0 if in_thread else round(c.final_iters_per_frame * len(self.trajectory))
+        total = c.final_iters + deferred if train else 0
+        if train and in_thread:
+            # Real time: at least the floor's share of a synchronous run's iterations in all.
+            live = sum(s.iterations for s in self._mapping.stats)
+            total = max(total, math.ceil(c.realtime_iters_floor * self._synchronous_iterations()) - live)
         # Real time: as many more as fit in `final_time` of the time the frames took.
         budget = (self.config.final_time * (time.perf_counter() - self._first_frame_at)
                   if train and in_thread and self._first_frame_at is not None else 0.0)
@@ -478,6 +484,12 @@ class SLAM:
         if progress is not None and open_ended:
             progress(done, done)
         self.trajectory.follow(self.mapper.keyframe_poses())
+
+    def _synchronous_iterations(self) -> int:
+        """The mapping iterations a synchronous run over the frames so far would make."""
+        c, frames, keyframes = self.config, len(self.trajectory), len(self.keyframe_frames)
+        return (c.map_iters_keyframe * keyframes + c.map_iters_frame * (frames - keyframes)
+                + c.final_iters + round(c.final_iters_per_frame * frames))
 
     def frame_exposures(self) -> Optional[np.ndarray]:
         """Per frame, the exposure (n x 2 x 3: per channel gain and bias, from the map's
