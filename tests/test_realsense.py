@@ -293,11 +293,15 @@ def test_no_sdk_or_no_camera_is_said(tmp_path, shots, monkeypatch, capsys):
         next(cam.frames())
 
 
-def test_pace_is_refused_with_a_camera(tmp_path, shots, monkeypatch, capsys):
+def test_pace_and_sync_are_refused_with_a_camera(tmp_path, shots, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "pyrealsense2", FakeSDK(shots, [[0], [1]]))
     out = tmp_path / "live"
     assert main(["run", "realsense", "--pace", "--out", str(out), *FAST]) == 2
     assert "a camera (or the RealSense SDK's playback) delivers frames at its own" in capsys.readouterr().err
+    assert not out.exists()
+    # Nor does it wait for the map.
+    assert main(["run", "realsense", "--sync", "--out", str(out), *FAST]) == 2
+    assert "--sync cannot be used with a live camera" in capsys.readouterr().err
     assert not out.exists()
 
 

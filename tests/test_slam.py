@@ -117,6 +117,32 @@ def test_config_files_and_unknown_options(tmp_path):
     assert SLAMConfig.from_file(tmp_path / "again.json") == cfg
 
 
+def test_the_command_runs_in_real_time_unless_told_or_configured_otherwise(tmp_path, capsys):
+    from legslam.cli import build_parser
+    from legslam.cli.run import run_config
+
+    def mapping_thread(*options):
+        return run_config(build_parser().parse_args(["run", "somewhere", *options])).mapping_thread
+
+    (tmp_path / "sync.toml").write_text("mapping_thread = false\nfinal_iters = 7\n")
+    (tmp_path / "other.json").write_text('{"final_iters": 7}')
+    (tmp_path / "list.json").write_text("[1, 2]")
+    assert mapping_thread() and mapping_thread("--realtime")
+    assert not mapping_thread("--sync")
+    # A config file's mode holds unless an option says otherwise; one without keeps the default.
+    assert not mapping_thread("--config", str(tmp_path / "sync.toml"))
+    assert mapping_thread("--config", str(tmp_path / "sync.toml"), "--realtime")
+    assert mapping_thread("--config", str(tmp_path / "other.json"))
+    assert not mapping_thread("--config", str(tmp_path / "other.json"), "--sync")
+    with pytest.raises(SystemExit):
+        mapping_thread("--sync", "--realtime")
+    assert "not allowed with argument" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="holds options by name, not list"):
+        SLAMConfig.from_file(tmp_path / "list.json")
+    # The library's own default stays synchronous (a run that repeats itself).
+    assert not SLAMConfig().mapping_thread
+
+
 def test_config_sections_are_the_engine_options_and_a_derived_one_is_set_in_one_place():
     from legslam import _core
     from legslam.slam import DERIVED, MapperOptions, TrackerOptions
@@ -215,6 +241,13 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     _, poses = read_tum(tmp_path / "out" / "trajectory.txt")
     assert len(poses) == 6
     assert (tmp_path / "out" / "map.ply").is_file() and (tmp_path / "out" / "metrics.json").is_file()
+    # In real time by default, the map given at least a synchronous run's iterations.
+    config = json.loads((tmp_path / "out" / "config.json").read_text())
+    assert config["mapping_thread"] is True and config["realtime_iters_floor"] == 1.0
+    its = json.loads((tmp_path / "out" / "timings.json").read_text())["mapping_iterations"]
+    keyframes = json.loads((tmp_path / "out" / "metrics.json").read_text())["keyframes"]
+    per_frame = SLAMConfig().final_iters_per_frame
+    assert its["while_frames_came_in"] + its["final"] >= 3 * keyframes + 5 + round(per_frame * 6), its
 
 
 def test_a_garbage_frame_is_lost_and_tracking_recovers(scene):

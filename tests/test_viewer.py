@@ -49,7 +49,7 @@ def test_cli_run_records_frames_poses_and_the_map(small_synthetic, tmp_path, cap
     needs_rerun()
     (tmp_path / "quick.toml").write_text(QUICK)
     rrd = tmp_path / "run.rrd"
-    assert main(["run", str(small_synthetic), "--no-features", "--max-frames", "5", "--quiet",
+    assert main(["run", str(small_synthetic), "--no-features", "--max-frames", "5", "--quiet", "--sync",
                  "--config", str(tmp_path / "quick.toml"), "--out", str(tmp_path / "out"),
                  "--viewer", "rerun", "--viewer-save", str(rrd)]) == 0
     assert rrd.stat().st_size > 100_000  # five 160x120 frames of colour and depth, and a map

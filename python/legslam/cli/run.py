@@ -44,8 +44,13 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-features", action="store_true",
                    help="no language features (the encoder, when cached, still serves "
                         "relocalisation and loop closure)")
-    p.add_argument("--realtime", action="store_true",
-                   help="map in a worker thread: the frame rate is the tracker's, the map gets "
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--sync", action="store_true",
+                      help="synchronous: every keyframe waits for its mapping iterations (slower; "
+                           "the run repeats itself to the bit; config mapping_thread = false)")
+    mode.add_argument("--realtime", action="store_true",
+                   help="the default unless the config file sets mapping_thread: "
+                        "map in a worker thread: the frame rate is the tracker's, the map gets "
                         f"the iterations the spare CPU allows, at {d.realtime_lr_scale:g} times the "
                         f"learning rates ({d.realtime_geometry_lr_scale:g} times for the "
                         "Gaussians' positions and shapes), with no keyframe within "
@@ -89,16 +94,17 @@ def _viewer(args):
 
 
 def run_config(args) -> SLAMConfig:
-    """The SLAMConfig the options ask for (checked before any frame is read)."""
+    """The SLAMConfig the options ask for (checked before any frame is read): real time unless
+    --sync, or the config file's mapping_thread, says otherwise."""
     overrides = {"features": False} if args.no_features else {}
-    if args.realtime:
-        overrides["mapping_thread"] = True
     if args.final_iters is not None:
         at_least("--final-iters", args.final_iters, 0)
         overrides["final_iters"] = args.final_iters
     try:
-        return (SLAMConfig.from_file(args.config, **overrides) if args.config
-                else SLAMConfig(**overrides))
+        options = SLAMConfig.read_file(args.config) if args.config else {}
+        overrides["mapping_thread"] = (False if args.sync else True if args.realtime
+                                       else options.get("mapping_thread", True))
+        return SLAMConfig.from_dict({**options, **overrides}, source=args.config or "options")
     except (OSError, ValueError) as e:
         raise UserError(str(e)) from e
 
@@ -209,7 +215,9 @@ def _camera(args):
 def run(args) -> int:
     camera = _camera(args)
     if camera is not None:
-        args.realtime = True  # a live camera does not wait for the map
+        if args.sync:
+            raise UserError("--sync cannot be used with a live camera: it does not wait for the map")
+        args.realtime = True
         return run_sequence(camera, camera.name, args, run_config(args))
     config = run_config(args)
     seq = open_sequence(args)

@@ -163,8 +163,9 @@ class SLAMConfig:
     #: measured depth, or `keyframe_max_gap` frames passed. With a mapping thread the coverage
     #: counts only while the map keeps up: paced 7-Scenes made none of its 76 keyframes for it
     #: (two runs; `keyframe_reasons` in metrics.json), the synchronous run 32 of its 90, and
-    #: without them 76 and 3.29 against 2.94 cm ATE, half of real time's gap (README, *What
-    #: the rest of the 7-Scenes gap is*).
+    #: without them 76 and 3.29 against 2.94 cm ATE; but the synchronous run alone moves
+    #: that much with the surface's truncation 1 mm longer (README, *What the rest of real
+    #: time's gap is*).
     keyframe_translation: float = 0.1
     keyframe_rotation: float = 10.0
     keyframe_overlap: float = 0.9
@@ -297,7 +298,9 @@ class SLAMConfig:
     #: time, on a thread pool of its own). Low overlap then makes a keyframe only once the
     #: previous one has had `map_iters_keyframe` iterations; `map_iters_frame` is unused.
     #: The tracker's reference is the map rendered after each batch at the latest tracked
-    #: pose.
+    #: pose. The library's default is synchronous (a run that repeats itself to the bit); the
+    #: `legslam` command's is real time (`--sync` for synchronous; README, *Real time by
+    #: default*).
     mapping_thread: bool = False
     mapping_batch: int = 2
     #: With a mapping thread: the mapper's threads (0: one per core); the tracker then runs
@@ -492,6 +495,11 @@ class SLAMConfig:
     @classmethod
     def from_file(cls, path, **overrides) -> "SLAMConfig":
         """Reads a .toml, .json or .yaml file (only the keys given change a default)."""
+        return cls.from_dict({**cls.read_file(path), **overrides}, source=str(path))
+
+    @staticmethod
+    def read_file(path) -> dict:
+        """The options a .toml, .json or .yaml config file gives, unchecked."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"no config file at {path}")
@@ -510,7 +518,9 @@ class SLAMConfig:
             data = yaml.safe_load(text) or {}
         else:
             raise ValueError(f"{path}: config files are .toml, .json or .yaml")
-        return cls.from_dict({**data, **overrides}, source=str(path))
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: a config file holds options by name, not {type(data).__name__}")
+        return data
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "config") -> "SLAMConfig":
