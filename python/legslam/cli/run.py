@@ -59,7 +59,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "the surface it tracks against from each frame a worker thread is free "
                         f"for and fusing one in {d.realtime_surface_every} into it, and at "
                         f"the end trains on for {d.final_time:g} times as long as the frames took "
-                        "and until the map has had a synchronous run's iterations "
+                        f"and until the map has had {d.realtime_iters_floor:g} of a synchronous run's "
+                        "iterations "
                         "(config: mapping_thread, realtime_lr_scale, realtime_geometry_lr_scale, "
                         "realtime_keyframe_min_gap, realtime_feature_every, surface_realtime, "
                         "realtime_surface_every, final_time, realtime_iters_floor)")

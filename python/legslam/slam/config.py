@@ -232,9 +232,13 @@ class SLAMConfig:
     #: `final_iters_per_frame` a frame; 0: no floor). A short recording leaves the mapping
     #: thread little time, and `final_time` a share of little: the built-in scene (60 frames,
     #: at the camera's pace) trained 2 iterations while its frames came and 100 after, its map
-    #: 28.94 against the synchronous 31.92 dB every 5th frame (README: *A floor under real
-    #: time's iterations*). On long recordings the time share gives more.
-    realtime_iters_floor: float = 1.0
+    #: 28.94 against the synchronous 31.92 dB every 5th frame. Not paced, 0.7 against 1.0
+    #: (README: *A floor under real time's iterations*): the built-in scene 31.64 and 31.67
+    #: against 32.65 and 32.68 dB at 10-11 against 7.7-8.5 fps, the Kinect-noise Replica render
+    #: 35.64 against 36.36 dB at 14.5 against 11.7 fps, 7-Scenes 25.04 against 25.40 dB at 17.2
+    #: against 13.8 fps; synchronous 31.92, 35.30 and 24.92-25.14 dB at 6.1, ~5 and 4.7-5.3.
+    #: So 0.7: the synchronous map's level at the most frames a second.
+    realtime_iters_floor: float = 0.7
     #: The final iterations' learning rates fall log-linearly from where the frames left them
     #: (the mapper's; with `mapping_thread`, the real-time scales of them) to this many times
     #: that (1: constant), as the iterations (or, in real time, the time) run out. At a
