@@ -241,7 +241,8 @@ def test_cli_demo_runs_end_to_end(tmp_path, capsys):
     _, poses = read_tum(tmp_path / "out" / "trajectory.txt")
     assert len(poses) == 6
     assert (tmp_path / "out" / "map.ply").is_file() and (tmp_path / "out" / "metrics.json").is_file()
-    # In real time by default, the map given at least a synchronous run's iterations.
+    # In real time by default, the map given at least the floor's share of a synchronous run's
+    # iterations.
     config = json.loads((tmp_path / "out" / "config.json").read_text())
     default = SLAMConfig()
     assert config["mapping_thread"] is True

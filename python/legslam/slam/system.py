@@ -432,11 +432,11 @@ class SLAM:
         """Stops the mapping thread, waits for outstanding keyframe features and runs the final
         mapping iterations (unless `train` is false: a run cut short keeps the map it has):
         `final_iters`, plus `final_iters_per_frame` a frame when synchronous or, in real time, as
-        long as `final_time` allows and as many as `realtime_iters_floor` asks, each group's learning rate annealed from where the
-        frames left it (the mapper's; in real time, its real-time scale of it) to
-        `final_lr_factor` times that; in batches, calling `progress(done, total)` after each
-        (total None while a real-time run trains on for `final_time`, then (done, done) once);
-        Ctrl-C stops between batches."""
+        long as `final_time` allows and as many as `realtime_iters_floor` asks, each group's
+        learning rate annealed from where the frames left it (the mapper's; in real time, its
+        real-time scale of it) to `final_lr_factor` times that; in batches, calling
+        `progress(done, total)` after each (total None while a real-time run trains on for
+        `final_time`, then (done, done) once); Ctrl-C stops between batches."""
         in_thread = self.mapping_in_thread
         if in_thread:
             threaded = self._mapping
