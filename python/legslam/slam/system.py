@@ -448,16 +448,15 @@ class SLAM:
         if self._features is not None:
             self._features.drain()
             self._correct()
-        # Synchronous: the iterations deferred from the frames, too.
         c = self.config
-        deferred = 0 if in_thread else round(c.final_iters_per_frame * len(self.trajectory))
-        total = c.final_iters + deferred if train else 0
+        # Synchronous: the iterations deferred from the frames, too.
+        total = (c.final_iters if in_thread else self._synchronous_final_iterations()) if train else 0
         if train and in_thread:
             # Real time: at least the floor's share of a synchronous run's iterations in all.
             live = sum(s.iterations for s in self._mapping.stats)
             total = max(total, math.ceil(c.realtime_iters_floor * self._synchronous_iterations()) - live)
         # Real time: as many more as fit in `final_time` of the time the frames took.
-        budget = (self.config.final_time * (time.perf_counter() - self._first_frame_at)
+        budget = (c.final_time * (time.perf_counter() - self._first_frame_at)
                   if train and in_thread and self._first_frame_at is not None else 0.0)
         # Then the count is known only once the time is spent.
         open_ended = budget > 0
@@ -485,11 +484,16 @@ class SLAM:
             progress(done, done)
         self.trajectory.follow(self.mapper.keyframe_poses())
 
+    def _synchronous_final_iterations(self) -> int:
+        """The final mapping iterations of a synchronous run over the frames so far."""
+        c = self.config
+        return c.final_iters + round(c.final_iters_per_frame * len(self.trajectory))
+
     def _synchronous_iterations(self) -> int:
         """The mapping iterations a synchronous run over the frames so far would make."""
         c, frames, keyframes = self.config, len(self.trajectory), len(self.keyframe_frames)
         return (c.map_iters_keyframe * keyframes + c.map_iters_frame * (frames - keyframes)
-                + c.final_iters + round(c.final_iters_per_frame * frames))
+                + self._synchronous_final_iterations())
 
     def frame_exposures(self) -> Optional[np.ndarray]:
         """Per frame, the exposure (n x 2 x 3: per channel gain and bias, from the map's
